@@ -1,0 +1,1 @@
+"""Retain's scheduler: config, data, training loop, evaluation, metrics, tracking, reports, CLI."""

@@ -1,0 +1,191 @@
+"""`python -m harness bench METHOD=sft PROFILE=quick SEED=1 steps_per_task=2000`.
+
+Everything a user can get wrong is checked before the first demo is generated: the benchmark,
+profile, method, every override, every task name, and the tracking store.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+import torch
+
+from harness.config import BenchConfig, resolve
+from harness.errors import RetainError
+from methods import Method, get_method, method_names
+from suites import UnknownName, get_suite
+
+
+@dataclass
+class Plan:
+    cfg: BenchConfig
+    methods: list[Method]
+
+
+def plan(args: list[str]) -> Plan:
+    """Resolve and validate everything; no simulator is stepped and nothing is written."""
+    from harness.runner import make_method
+
+    cfg = resolve(args)
+    try:
+        suite = get_suite(cfg.suite)
+        for task in cfg.foundation_tasks + cfg.stream_tasks:
+            suite.check_task(task)
+    except UnknownName as exc:
+        raise RetainError(str(exc)) from None
+    both = sorted(set(cfg.foundation_tasks) & set(cfg.stream_tasks))
+    if both:
+        raise RetainError(f"task {both[0]!r} is both a foundation and a stream task in {cfg.name}")
+    if not cfg.stream_tasks or not cfg.foundation_tasks:
+        raise RetainError(f"benchmark {cfg.name} needs at least one foundation and one stream task")
+    if cfg.method == "all":
+        names = ["sft"] + [n for n in method_names() if n != "sft"]
+    else:
+        names = [n.strip() for n in cfg.method.split(",") if n.strip()]
+    try:
+        classes = [get_method(n) for n in names]
+    except ValueError as exc:
+        raise RetainError(str(exc)) from None
+    if len(classes) > 1:
+        for key in cfg.method_params:  # a setting must belong to at least one of the methods
+            if not any(key in c.Config.__dataclass_fields__ for c in classes):
+                make_method(classes[0], {key: cfg.method_params[key]})
+        methods = [make_method(c, {k: v for k, v in cfg.method_params.items()
+                                   if k in c.Config.__dataclass_fields__}) for c in classes]
+    else:
+        methods = [make_method(classes[0], cfg.method_params)]
+    return Plan(cfg, methods)
+
+
+def bench(args: list[str]) -> int:
+    from harness.data import prepare_data
+    from harness.foundation import load_or_train_foundation
+    from harness.reports import summary_table, write_run_outputs
+    from harness.runner import run_stream
+    from harness.tracking import Tracker, git_commit, package_versions
+
+    p = plan(args)
+    cfg = p.cfg
+    torch.set_num_threads(cfg.torch_threads)
+    tracker = Tracker(cfg.results_dir, experiment=cfg.name)
+    provenance = {"git_commit": git_commit(), "versions": package_versions(),
+                  "command": " ".join(args), "seeds": cfg.seed_list()}
+    parent = tracker.start_run(f"{cfg.name}:{cfg.method}", tags={"benchmark": cfg.name})
+    tracker.log_params(parent, {**{f"config.{k}": v for k, v in cfg.as_dict().items()},
+                                "git_commit": provenance["git_commit"],
+                                **{f"version.{k}": v for k, v in provenance["versions"].items()}})
+    start = time.time()
+    status = "FAILED"
+    try:
+        suite = get_suite(cfg.suite)
+        print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
+              f"{len(cfg.stream_tasks)} stream tasks, methods {[m.name for m in p.methods]}, "
+              f"seeds {cfg.seed_list()}", flush=True)
+        data = prepare_data(cfg, suite)
+        print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
+        results = []
+        for seed in cfg.seed_list():
+            foundation = load_or_train_foundation(
+                cfg, suite, data, seed,
+                log=_batched_logger(tracker, parent, prefix=f"foundation_seed{seed}/"))
+            print(f"[retain] seed {seed}: foundation ready, stage-0 foundation success "
+                  f"{_foundation_success(cfg, foundation.stage0):.3f} ({time.time() - start:.0f}s)",
+                  flush=True)
+            for method in p.methods:
+                results.append(_run_one(cfg, suite, data, foundation, method, seed, tracker,
+                                        parent, provenance, write_run_outputs))
+                r = results[-1]
+                print(f"[retain] {method.name} seed {seed}: foundation success "
+                      f"{r.metrics['foundation_success_stage0']:.3f} -> {r.metrics['retention']:.3f}, "
+                      f"plasticity {r.metrics['plasticity']:.3f} ({time.time() - start:.0f}s)",
+                      flush=True)
+        table = summary_table(results)
+        print("\n" + table)
+        for r in results:
+            print(f"  {r.method} seed {r.seed}: {r.run_dir}/")
+        print(f"  MLflow: {tracker.uri} (experiment {cfg.name!r}); `make ui` to browse")
+        status = "FINISHED"
+        return 0
+    finally:
+        tracker.end_run(parent, status)
+
+
+def _foundation_success(cfg: BenchConfig, record) -> float:
+    return sum(record.success[t] for t in cfg.foundation_tasks) / len(cfg.foundation_tasks)
+
+
+class _batched_logger:
+    """Collects per-step metrics and sends them to MLflow a few hundred rows at a time."""
+
+    def __init__(self, tracker, run_id: str, prefix: str = "", every: int = 200):
+        self.tracker, self.run_id, self.prefix, self.every = tracker, run_id, prefix, every
+        self.rows: list[tuple[int, dict[str, float]]] = []
+
+    def __call__(self, step: int, metrics: dict[str, float]) -> None:
+        self.rows.append((step, {self.prefix + k: v for k, v in metrics.items()}))
+        if len(self.rows) >= self.every:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.rows:
+            self.tracker.log_metric_rows(self.run_id, self.rows)
+            self.rows = []
+
+
+def _run_one(cfg, suite, data, foundation, method, seed, tracker, parent, provenance, write_outputs):
+    from harness.runner import run_stream
+
+    child = tracker.start_run(f"{method.name}/seed{seed}", parent_id=parent,
+                              tags={"method": method.name, "seed": str(seed), "benchmark": cfg.name})
+    tracker.log_params(child, {**{f"config.{k}": v for k, v in cfg.as_dict().items()},
+                               **{f"method.{k}": v for k, v in method.hyperparameters().items()},
+                               "method": method.name, "seed": seed,
+                               "git_commit": provenance["git_commit"],
+                               **{f"version.{k}": v for k, v in provenance["versions"].items()}})
+    logger = _batched_logger(tracker, child)
+    status = "FAILED"
+    try:
+        stage_rows = [(0, _stage_metrics(cfg, foundation.stage0))]
+
+        def on_stage(record):
+            logger.flush()
+            tracker.log_metric_rows(child, [(record.stage, _stage_metrics(cfg, record))])
+
+        tracker.log_metric_rows(child, stage_rows)
+        result = run_stream(cfg, suite, data, foundation, method, seed, logger, on_stage)
+        logger.flush()
+        tracker.log_metrics(child, result.metrics, step=len(cfg.stream_tasks))
+        paths = write_outputs(cfg, result, provenance)
+        for path in paths.values():
+            tracker.log_artifact(child, path)
+        status = "FINISHED"
+        return result
+    finally:
+        tracker.end_run(child, status)
+
+
+def _stage_metrics(cfg, record) -> dict[str, float]:
+    m = {f"success/{t}": v for t, v in record.success.items()}
+    m.update({f"heldout_loss/{t}": v for t, v in record.heldout_loss.items()})
+    m.update({f"update/{k}": v for k, v in record.updates.items()})
+    m["foundation_success"] = _foundation_success(cfg, record)
+    m["stage_train_loss"] = record.train_loss
+    return m
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    commands = {"bench": bench}
+    if not argv or argv[0] not in commands:
+        print(f"usage: python -m harness {{{','.join(commands)}}} [KEY=VALUE ...]", file=sys.stderr)
+        return 2
+    try:
+        return commands[argv[0]](argv[1:])
+    except RetainError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; finished stages are kept and the same command resumes", file=sys.stderr)
+        return 130

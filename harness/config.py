@@ -1,0 +1,189 @@
+"""Benchmark configuration: named YAML files, profiles, and `key=value` overrides.
+
+Resolution: BENCH (or the benchmark PROFILE stands for) -> the YAML file -> the profile's
+scaling (tiny, paper) -> command-line overrides. Lower-case keys name a field of `BenchConfig`
+or a hyperparameter of the method; a key that is neither is an error naming the valid keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from harness.errors import RetainError
+
+BENCHMARK_DIR = Path(__file__).parent / "benchmarks"
+PROFILE_BENCHMARKS = {"quick": "mw-quick", "standard": "mw-standard", "tiny": "mw-quick",
+                      "paper": "mw-standard"}
+UPPER_KEYS = {"METHOD", "BENCH", "PROFILE", "SEED", "SEEDS"}
+
+
+@dataclass
+class BenchConfig:
+    name: str
+    suite: str
+    foundation_tasks: list[str]
+    stream_tasks: list[str]
+    demos_per_task: int = 50
+    heldout_demos_per_task: int = 5
+    eval_episodes: int = 20
+    max_episode_steps: int = 200
+    foundation_steps: int = 4000
+    steps_per_task: int = 1500
+    batch_size: int = 256
+    lr: float = 3e-4
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
+    policy_size: str = "default"
+    chunk_size: int = 4
+    n_action_steps: int = 4
+    cameras: bool = False
+    image_size: int = 84
+    profile: str = ""
+    seed: int = 0  # first seed
+    seeds: int = 1  # number of seeds: seed, seed + 1, ...
+    method: str = "sft"
+    method_params: dict[str, Any] = field(default_factory=dict)
+    results_dir: str = "results"
+    cache_dir: str = "cache"
+    progress: bool = True
+    torch_threads: int = 1  # intra-op threads; small CPU batches are slower with more
+
+    def seed_list(self) -> list[int]:
+        return list(range(self.seed, self.seed + self.seeds))
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def benchmark_names() -> list[str]:
+    return sorted(p.stem for p in BENCHMARK_DIR.glob("*.yaml"))
+
+
+def load_benchmark(name: str) -> BenchConfig:
+    path = BENCHMARK_DIR / f"{name}.yaml"
+    if not path.exists():
+        raise RetainError(f"unknown benchmark {name!r}; valid: {', '.join(benchmark_names())}")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise RetainError(f"benchmark file {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+    if not isinstance(raw, dict):
+        raise RetainError(f"benchmark file {path} must be a mapping of settings")
+    valid = {f.name for f in fields(BenchConfig)}
+    bad = sorted(set(raw) - valid)
+    if bad:
+        raise RetainError(f"benchmark file {path}: unknown key {bad[0]!r}; valid: {', '.join(sorted(valid))}")
+    missing = [k for k in ("name", "suite", "foundation_tasks", "stream_tasks") if k not in raw]
+    if missing:
+        raise RetainError(f"benchmark file {path} is missing {missing[0]!r}")
+    cfg = BenchConfig(**{k: raw[k] for k in ("name", "suite", "foundation_tasks", "stream_tasks")})
+    for key, value in raw.items():
+        set_field(cfg, key, value)
+    return cfg
+
+
+def apply_profile(cfg: BenchConfig, profile: str) -> None:
+    """`tiny` shrinks any benchmark to seconds (tests); `paper` is the GPU scale."""
+    if profile == "tiny":
+        cfg.foundation_tasks = cfg.foundation_tasks[:2]
+        cfg.stream_tasks = cfg.stream_tasks[:2]
+        cfg.demos_per_task, cfg.heldout_demos_per_task, cfg.eval_episodes = 3, 1, 2
+        cfg.max_episode_steps = min(cfg.max_episode_steps, 100)
+        cfg.foundation_steps, cfg.steps_per_task, cfg.batch_size = 30, 10, 32
+        cfg.policy_size = "tiny"
+    elif profile == "paper":
+        cfg.policy_size = "large"
+        cfg.demos_per_task *= 2
+        cfg.foundation_steps *= 5
+        cfg.steps_per_task *= 2
+        cfg.eval_episodes = max(cfg.eval_episodes, 50)
+        cfg.seeds = max(cfg.seeds, 3)
+    cfg.profile = profile
+
+
+def _coerce(key: str, value: Any, annotation: Any) -> Any:
+    """Turn a YAML or command-line value into the field's type, or fail naming both."""
+    if isinstance(annotation, str):
+        annotation = eval(annotation, vars(typing) | {"Any": Any})  # noqa: S307 - our own annotations
+    origin = typing.get_origin(annotation)
+    try:
+        if annotation is bool:
+            if isinstance(value, bool):
+                return value
+            if str(value).lower() in ("1", "true", "yes", "on"):
+                return True
+            if str(value).lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError
+        if annotation is int:
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise ValueError
+            return int(value)
+        if annotation is float:
+            return float(value)
+        if annotation is str:
+            if not isinstance(value, (str, int, float)):
+                raise ValueError
+            return str(value)
+        if origin is list:
+            items = value.split(",") if isinstance(value, str) else value
+            if not isinstance(items, list):
+                raise ValueError
+            return [str(v).strip() for v in items if str(v).strip()]
+        if origin is dict or annotation is Any or isinstance(annotation, types.GenericAlias):
+            return value
+    except (TypeError, ValueError):
+        pass
+    else:
+        return value
+    kind = getattr(annotation, "__name__", str(annotation))
+    raise RetainError(f"bad value {value!r} for {key}: expected {kind}")
+
+
+def set_field(cfg: Any, key: str, value: Any) -> None:
+    hints = typing.get_type_hints(type(cfg))
+    setattr(cfg, key, _coerce(key, value, hints[key]))
+
+
+def parse_overrides(args: list[str]) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for arg in args:
+        key, sep, value = arg.partition("=")
+        if not sep or not key or not key.replace("_", "").replace(".", "").isalnum():
+            raise RetainError(f"malformed override {arg!r}: expected key=value, e.g. steps_per_task=2000")
+        out[key] = value
+    return out
+
+
+def resolve(args: list[str]) -> BenchConfig:
+    """The full config from command-line arguments such as `METHOD=sft PROFILE=quick lr=1e-4`."""
+    overrides = parse_overrides(args)
+    profile = overrides.pop("PROFILE", "") or ""
+    if profile and profile not in PROFILE_BENCHMARKS:
+        raise RetainError(f"unknown profile {profile!r}; valid: {', '.join(PROFILE_BENCHMARKS)}")
+    bench = overrides.pop("BENCH", "") or PROFILE_BENCHMARKS.get(profile, "mw-quick")
+    cfg = load_benchmark(bench)
+    if profile in ("tiny", "paper"):
+        apply_profile(cfg, profile)
+    else:
+        cfg.profile = profile
+    for upper, lower in (("METHOD", "method"), ("SEED", "seed"), ("SEEDS", "seeds")):
+        if overrides.get(upper, "") != "":
+            set_field(cfg, lower, overrides.pop(upper))
+        overrides.pop(upper, None)
+    bench_keys = {f.name for f in fields(BenchConfig)} - {"method_params"}
+    for key, value in overrides.items():
+        if key in bench_keys:
+            set_field(cfg, key, value)
+        else:
+            cfg.method_params[key.removeprefix("method.")] = value
+    if cfg.seeds < 1:
+        raise RetainError(f"bad value {cfg.seeds} for seeds: expected at least 1")
+    return cfg

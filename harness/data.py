@@ -1,0 +1,44 @@
+"""Suite -> training data: every task's demos (cached), chunked, with its instruction embedded."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from harness.config import BenchConfig
+from harness.datasets import TrainingData, chunk_episodes
+from harness.demos import DemoSpec, load_or_generate
+from policies.text_encoder import embed_instructions
+from suites import Suite
+
+
+@dataclass
+class BenchmarkData:
+    train: dict[str, TrainingData]  # task -> training samples
+    heldout: dict[str, TrainingData]  # task -> held-out samples (offline retention)
+    instructions: dict[str, np.ndarray]  # task -> [384] embedding
+
+    def foundation(self, tasks: list[str]) -> TrainingData:
+        return TrainingData.concat([self.train[t] for t in tasks])
+
+
+def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec:
+    n = cfg.demos_per_task if split == "demo" else cfg.heldout_demos_per_task
+    return DemoSpec(suite=suite.name, suite_version=suite.version(), task=task, split=split,
+                    num_demos=n, max_episode_steps=cfg.max_episode_steps, cameras=cfg.cameras,
+                    image_size=cfg.image_size)
+
+
+def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
+    tasks = cfg.foundation_tasks + cfg.stream_tasks
+    cache = Path(cfg.cache_dir)
+    embeddings = embed_instructions([suite.instruction(t) for t in tasks], cache / "instructions")
+    data = BenchmarkData({}, {}, {})
+    for task, embedding in zip(tasks, embeddings):
+        data.instructions[task] = embedding
+        for split, target in (("demo", data.train), ("heldout", data.heldout)):
+            episodes = load_or_generate(suite, demo_spec(cfg, suite, task, split), cache, cfg.progress)
+            target[task] = chunk_episodes(episodes, task, embedding, cfg.chunk_size)
+    return data

@@ -1,0 +1,93 @@
+"""Demonstrations as training samples: one (observation, action chunk) pair per demo step.
+
+A chunk holds the next `chunk_size` actions; past an episode's end it repeats the last action
+and masks the padding out of the loss (as LeRobot does).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from harness.demos import Episode
+
+
+@dataclass
+class TrainingData:
+    """Samples of one or more tasks, held as tensors. `task_names[task_index[i]]` is sample i's task."""
+
+    obs: dict[str, torch.Tensor]  # key -> [N, ...]
+    actions: torch.Tensor  # [N, H, A]
+    action_mask: torch.Tensor  # [N, H] bool
+    task_index: torch.Tensor  # [N] long
+    instruction_table: torch.Tensor  # [T, 384] one row per task
+    task_names: list[str]
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+    def batch(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        out = {k: v[idx] for k, v in self.obs.items()}
+        out["actions"] = self.actions[idx]
+        out["action_mask"] = self.action_mask[idx]
+        out["instruction"] = self.instruction_table[self.task_index[idx]]
+        out["task_index"] = self.task_index[idx]
+        return out
+
+    def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        return self.batch(torch.randint(len(self), (batch_size,), generator=generator))
+
+    def subset(self, idx: torch.Tensor) -> TrainingData:
+        return TrainingData({k: v[idx] for k, v in self.obs.items()}, self.actions[idx],
+                            self.action_mask[idx], self.task_index[idx], self.instruction_table,
+                            self.task_names)
+
+    def for_task(self, task: str) -> TrainingData:
+        return self.subset(torch.nonzero(self.task_index == self.task_names.index(task)).flatten())
+
+    @staticmethod
+    def concat(parts: list[TrainingData]) -> TrainingData:
+        """Join datasets, re-indexing tasks so every task name appears once."""
+        names: list[str] = []
+        rows: list[torch.Tensor] = []
+        for part in parts:
+            for i, name in enumerate(part.task_names):
+                if name not in names:
+                    names.append(name)
+                    rows.append(part.instruction_table[i])
+        remapped = [torch.tensor([names.index(n) for n in p.task_names])[p.task_index] for p in parts]
+        keys = parts[0].obs.keys()
+        return TrainingData(
+            {k: torch.cat([p.obs[k] for p in parts]) for k in keys},
+            torch.cat([p.actions for p in parts]),
+            torch.cat([p.action_mask for p in parts]),
+            torch.cat(remapped),
+            torch.stack(rows) if rows else parts[0].instruction_table[:0],
+            names,
+        )
+
+
+def chunk_episodes(
+    episodes: list[Episode], task: str, instruction_embedding: np.ndarray, chunk_size: int
+) -> TrainingData:
+    obs_parts: dict[str, list[np.ndarray]] = {k: [] for k in episodes[0].obs}
+    action_parts, mask_parts = [], []
+    offsets = np.arange(chunk_size)
+    for episode in episodes:
+        t_len = len(episode)
+        idx = np.arange(t_len)[:, None] + offsets[None]  # [T, H]
+        mask_parts.append(idx < t_len)
+        action_parts.append(episode.actions[np.minimum(idx, t_len - 1)])
+        for k in obs_parts:
+            obs_parts[k].append(episode.obs[k])
+    n = sum(len(e) for e in episodes)
+    return TrainingData(
+        {k: torch.from_numpy(np.concatenate(v)) for k, v in obs_parts.items()},
+        torch.from_numpy(np.concatenate(action_parts).astype(np.float32)),
+        torch.from_numpy(np.concatenate(mask_parts)),
+        torch.zeros(n, dtype=torch.long),
+        torch.from_numpy(np.asarray(instruction_embedding, np.float32)[None]),
+        [task],
+    )

@@ -1,0 +1,165 @@
+"""Scripted-expert demonstrations, cached on disk as HDF5 in the LIBERO / robomimic layout.
+
+    data/                     attrs: instruction, task, suite, cache_key, settings (JSON), total
+    data/demo_<i>/actions     [T, A] float32
+    data/demo_<i>/obs/<key>   [T, ...] (state: [T, S] float32; images: [T, H, W, 3] uint8)
+    data/demo_<i>/rewards     [T] float32, 1 at the step that succeeded
+    data/demo_<i>/dones       [T] uint8, 1 at the last step
+                              attrs: seed, num_samples
+
+Files are keyed by a hash of everything that produced them, written atomically, and checked on
+read: a corrupt file or one made for other settings is an error, never silently reused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from harness.atomic import atomic_path
+from harness.errors import DemoFileError
+from suites import Suite, episode_seeds
+
+FORMAT_VERSION = 1
+MAX_ATTEMPTS_PER_DEMO = 4  # experts fail ~5% of the time; give up well before looping forever
+
+
+@dataclass(frozen=True)
+class Episode:
+    actions: np.ndarray  # [T, A]
+    obs: dict[str, np.ndarray]  # key -> [T, ...]
+    seed: int
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+@dataclass(frozen=True)
+class DemoSpec:
+    """Everything that determines a task's demo file; its hash is the cache key."""
+
+    suite: str
+    suite_version: str
+    task: str
+    split: str  # "demo" (training) or "heldout" (held-out loss)
+    num_demos: int
+    max_episode_steps: int
+    cameras: bool = False
+    image_size: int = 84
+    format_version: int = FORMAT_VERSION
+
+    def key(self) -> str:
+        blob = json.dumps(asdict(self), sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+    def filename(self) -> str:
+        return f"{self.task}.{self.split}.{self.key()}.hdf5"
+
+
+def rollout_expert(suite: Suite, env, seed: int, max_steps: int) -> Episode | None:
+    """One expert episode from `reset(seed)`; None unless it succeeds within `max_steps`."""
+    obs = env.reset(seed)
+    observations, actions = [], []
+    for _ in range(max_steps):
+        action = env.expert_action()
+        observations.append(obs)
+        actions.append(action)
+        result = env.step(action)
+        obs = result.obs
+        if result.success:
+            keys = observations[0].keys()
+            stacked = {k: np.stack([o[k] for o in observations]) for k in keys}
+            return Episode(np.stack(actions).astype(np.float32), stacked, seed)
+    return None
+
+
+def generate_demos(suite: Suite, spec: DemoSpec, progress: bool = True) -> list[Episode]:
+    """Run the task's expert on its seeded episodes until `num_demos` succeed."""
+    from tqdm import tqdm
+
+    env = suite.make_env(spec.task, cameras=spec.cameras, image_size=spec.image_size)
+    seeds = episode_seeds(suite.name, spec.task, spec.split, spec.num_demos * MAX_ATTEMPTS_PER_DEMO)
+    episodes: list[Episode] = []
+    bar = tqdm(total=spec.num_demos, desc=f"demos {spec.task} ({spec.split})", disable=not progress,
+               leave=False)
+    try:
+        for seed in seeds:
+            episode = rollout_expert(suite, env, seed, spec.max_episode_steps)
+            if episode is not None:
+                episodes.append(episode)
+                bar.update(1)
+            if len(episodes) == spec.num_demos:
+                return episodes
+    finally:
+        bar.close()
+        env.close()
+    raise DemoFileError(
+        f"expert for task {spec.task!r} succeeded on only {len(episodes)} of {len(seeds)} "
+        f"episodes within {spec.max_episode_steps} steps; raise max_episode_steps"
+    )
+
+
+def write_demo_file(path: Path, episodes: list[Episode], spec: DemoSpec, instruction: str) -> None:
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            data = f.create_group("data")
+            data.attrs.update(instruction=instruction, task=spec.task, suite=spec.suite,
+                              cache_key=spec.key(), settings=json.dumps(asdict(spec), sort_keys=True),
+                              total=sum(len(e) for e in episodes))
+            for i, episode in enumerate(episodes):
+                demo = data.create_group(f"demo_{i}")
+                demo.attrs.update(seed=episode.seed, num_samples=len(episode))
+                demo.create_dataset("actions", data=episode.actions)
+                for key, value in episode.obs.items():
+                    demo.create_dataset(f"obs/{key}", data=value)
+                rewards = np.zeros(len(episode), np.float32)
+                rewards[-1] = 1.0
+                demo.create_dataset("rewards", data=rewards)
+                demo.create_dataset("dones", data=(rewards > 0).astype(np.uint8))
+
+
+def read_demo_file(path: Path, expected: DemoSpec | None = None) -> tuple[str, list[Episode]]:
+    """(instruction, episodes). Raises DemoFileError, one line, on a corrupt or mismatched file."""
+    try:
+        with h5py.File(path, "r") as f:
+            if "data" not in f:
+                raise DemoFileError(f"demo file {path} has no 'data' group; expected the robomimic layout")
+            data = f["data"]
+            if expected is not None and data.attrs.get("cache_key") != expected.key():
+                made_for = data.attrs.get("settings", "unknown settings")
+                raise DemoFileError(
+                    f"demo file {path} was made for other settings ({made_for}); expected "
+                    f"{json.dumps(asdict(expected), sort_keys=True)}: delete it to regenerate"
+                )
+            names = sorted((k for k in data if k.startswith("demo_")), key=lambda k: int(k[5:]))
+            if not names:
+                raise DemoFileError(f"demo file {path} holds no demo_<i> groups")
+            episodes = []
+            for name in names:
+                demo = data[name]
+                for key in ("actions", "obs"):
+                    if key not in demo:
+                        raise DemoFileError(f"demo file {path}: {name} is missing '{key}'")
+                obs = {k: demo["obs"][k][()] for k in demo["obs"]}
+                episodes.append(Episode(demo["actions"][()], obs, int(demo.attrs.get("seed", -1))))
+            return str(data.attrs.get("instruction", "")), episodes
+    except DemoFileError:
+        raise
+    except (OSError, KeyError, ValueError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DemoFileError(f"demo file {path} is corrupt ({reason}): delete it to regenerate") from None
+
+
+def load_or_generate(suite: Suite, spec: DemoSpec, cache_dir: Path, progress: bool = True) -> list[Episode]:
+    """The task's demos from the cache, generating and caching them the first time."""
+    path = Path(cache_dir) / "demos" / spec.suite / spec.filename()
+    if path.exists():
+        return read_demo_file(path, spec)[1]
+    episodes = generate_demos(suite, spec, progress=progress)
+    write_demo_file(path, episodes, spec, suite.instruction(spec.task))
+    return episodes

@@ -1,0 +1,92 @@
+"""The foundation stage: multi-task pre-training, cached by a hash of its config, shared by all
+methods (so every method starts from the same weights), with its stage-0 evaluation."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from harness.config import BenchConfig
+from harness.data import BenchmarkData, demo_spec
+from harness.seeding import derive_seed, generator
+from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
+from harness.trainer import TrainSettings, train_stage
+from methods import Method, TaskContext
+from policies import FlowMatchingConfig, FlowMatchingPolicy
+from suites import Suite
+
+FOUNDATION_VERSION = 1  # bump when the training code changes what a cached checkpoint holds
+
+
+@dataclass
+class Foundation:
+    key: str
+    policy_state: dict[str, torch.Tensor]
+    final_loss: float
+    stage0: StageRecord
+
+
+def policy_config(cfg: BenchConfig, suite: Suite) -> FlowMatchingConfig:
+    image_keys = ("agentview_image", "wrist_image") if cfg.cameras else ()
+    return FlowMatchingConfig(state_dim=suite.state_dim, action_dim=suite.action_dim,
+                              size=cfg.policy_size, chunk_size=cfg.chunk_size,
+                              n_action_steps=cfg.n_action_steps, image_keys=image_keys,
+                              image_size=cfg.image_size)
+
+
+def build_policy(cfg: BenchConfig, suite: Suite) -> FlowMatchingPolicy:
+    return FlowMatchingPolicy(policy_config(cfg, suite))
+
+
+def _hash(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def foundation_key(cfg: BenchConfig, suite: Suite, seed: int) -> str:
+    return _hash({
+        "version": FOUNDATION_VERSION, "seed": seed, "policy": policy_config(cfg, suite).__dict__,
+        "demos": [demo_spec(cfg, suite, t, "demo").key() for t in cfg.foundation_tasks],
+        "train": [cfg.foundation_steps, cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.grad_clip],
+    })
+
+
+def stage0_key(cfg: BenchConfig, suite: Suite) -> str:
+    tasks = cfg.foundation_tasks + cfg.stream_tasks
+    return _hash({"eval": [cfg.eval_episodes, cfg.max_episode_steps, cfg.n_action_steps],
+                  "heldout": [demo_spec(cfg, suite, t, "heldout").key() for t in tasks]})
+
+
+def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData, seed: int,
+                             log=None) -> Foundation:
+    key = foundation_key(cfg, suite, seed)
+    directory = Path(cfg.cache_dir) / "foundation" / key
+    weights, stage0_path = directory / "policy.pt", directory / f"stage0-{stage0_key(cfg, suite)}.pt"
+    policy = build_policy(cfg, suite)
+    if weights.exists():
+        saved = load_checkpoint(weights)
+        policy.load_state_dict(saved["policy"])
+        final_loss = saved["final_loss"]
+    else:
+        train = data.foundation(cfg.foundation_tasks)
+        policy.state_norm.fit(train.obs["state"])
+        policy.action_norm.fit(train.actions.flatten(0, 1))
+        torch.manual_seed(derive_seed(seed, "foundation"))
+        ctx = TaskContext(stage=0, task="foundation", data=train, policy=policy,
+                          foundation_loss=float("nan"), steps=cfg.foundation_steps)
+        settings = TrainSettings(cfg.foundation_steps, cfg.batch_size, cfg.lr, cfg.weight_decay,
+                                 cfg.grad_clip)
+        result = train_stage(ctx, Method(), settings, generator(seed, "foundation"), log)
+        final_loss = result.final_loss
+        save_checkpoint(weights, {"policy": policy.state_dict(), "final_loss": final_loss,
+                                  "config": cfg.as_dict()})
+    if stage0_path.exists():
+        stage0 = StageRecord(**load_checkpoint(stage0_path))
+    else:
+        stage0 = evaluate_stage(policy, suite, cfg, data, seed, 0, "foundation")
+        stage0.train_loss = final_loss
+        save_checkpoint(stage0_path, stage0.as_dict())
+    return Foundation(key, policy.state_dict(), final_loss, stage0)

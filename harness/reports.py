@@ -1,0 +1,103 @@
+"""Per-run outputs on disk (CSV, JSON, YAML, a heatmap PNG) and the printed summary."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from harness.atomic import atomic_path, write_text
+from harness.config import BenchConfig
+
+
+def success_matrix_csv(tasks: list[str], stage_tasks: list[str], R: np.ndarray) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["stage", "trained_on", *tasks])
+    for i, row in enumerate(R):
+        writer.writerow([i, stage_tasks[i], *[f"{v:.4f}" for v in row]])
+    return buf.getvalue()
+
+
+def rows_csv(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    if rows:
+        writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    return buf.getvalue()
+
+
+def plot_success_matrix(path: Path, R: np.ndarray, tasks: list[str], stage_tasks: list[str],
+                        n_foundation: int, title: str) -> None:
+    """Stages by tasks, foundation and stream tasks separated by a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(1.0 + 0.55 * len(tasks), 1.4 + 0.45 * len(R)), dpi=120)
+    im = ax.imshow(R, vmin=0, vmax=1, cmap="viridis", aspect="auto")
+    for (i, j), v in np.ndenumerate(R):
+        ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7,
+                color="white" if v < 0.6 else "black")
+    ax.axvline(n_foundation - 0.5, color="red", linewidth=2)
+    ax.set_xticks(range(len(tasks)), [t.removesuffix("-v3") for t in tasks], rotation=60, ha="right",
+                  fontsize=8)
+    ax.set_yticks(range(len(R)), [f"{i}: {t.removesuffix('-v3')}" for i, t in enumerate(stage_tasks)],
+                  fontsize=8)
+    ax.set_xlabel("evaluated task (left of red line: foundation; right: stream)")
+    ax.set_ylabel("stage: trained on")
+    ax.set_title(title, fontsize=9)
+    fig.colorbar(im, ax=ax, label="success rate")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, Path]:
+    """Write a run's files atomically; returns name -> path."""
+    out = result.run_dir
+    R = result.success_matrix()
+    stage_tasks = [s.task for s in result.stages]
+    paths = {
+        "success_matrix": out / "success_matrix.csv",
+        "metrics": out / "metrics.json",
+        "config": out / "config.yaml",
+        "heatmap": out / "success_matrix.png",
+        "heldout_loss": out / "heldout_loss.csv",
+        "updates_per_layer": out / "updates_per_layer.csv",
+    }
+    write_text(paths["success_matrix"], success_matrix_csv(result.tasks, stage_tasks, R))
+    write_text(paths["heldout_loss"], success_matrix_csv(result.tasks, stage_tasks,
+                                                         result.heldout_matrix()))
+    write_text(paths["updates_per_layer"], rows_csv(result.layer_rows))
+    stages = [{"stage": s.stage, "trained_on": s.task, "train_loss": s.train_loss,
+               "updates": s.updates, "updates_stage_over_stage": s.updates_stage} for s in result.stages]
+    write_text(paths["metrics"], json.dumps({"method": result.method, "seed": result.seed,
+                                              "metrics": result.metrics, "stages": stages},
+                                             indent=2, sort_keys=True, default=float) + "\n")
+    write_text(paths["config"], yaml.safe_dump({**provenance, "config": cfg.as_dict()}, sort_keys=True))
+    plot_success_matrix(paths["heatmap"], R, result.tasks, stage_tasks, len(cfg.foundation_tasks),
+                        f"{cfg.name}: {result.method}, seed {result.seed}")
+    return paths
+
+
+HEADLINE = ["foundation_success_stage0", "retention", "retention_drop", "plasticity",
+            "stream_final_success", "forgetting", "bwt", "offline_retention",
+            "update_frac_changed_rho0.01", "update_relative_l2"]
+
+
+def summary_table(results) -> str:
+    """Markdown table: one row per (method, seed), the headline metrics as columns."""
+    header = "| method | seed | " + " | ".join(HEADLINE) + " |"
+    lines = [header, "|" + "---|" * (len(HEADLINE) + 2)]
+    for r in results:
+        cells = [f"{r.metrics.get(k, float('nan')):.3f}" for k in HEADLINE]
+        lines.append(f"| {r.method} | {r.seed} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,158 @@
+"""The stream loop for one (method, seed): fine-tune on each new task, evaluate everything,
+checkpoint the stage atomically, and resume from the last finished stage when restarted."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from harness.config import BenchConfig, set_field
+from harness.data import BenchmarkData
+from harness.errors import RetainError
+from harness.foundation import Foundation, build_policy
+from harness.metrics import CoreMetrics, core_metrics, offline_retention
+from harness.seeding import derive_seed, generator
+from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
+from harness.trainer import TrainSettings, train_stage
+from harness.updates import update_stats
+from methods import Method, TaskContext
+from suites import Suite
+
+
+@dataclass
+class RunResult:
+    method: str
+    seed: int
+    run_dir: Path
+    stages: list[StageRecord]
+    metrics: dict[str, float]
+    tasks: list[str]
+    layer_rows: list[dict]
+
+    def success_matrix(self) -> np.ndarray:
+        return np.array([[s.success[t] for t in self.tasks] for s in self.stages])
+
+    def heldout_matrix(self) -> np.ndarray:
+        return np.array([[s.heldout_loss[t] for t in self.tasks] for s in self.stages])
+
+
+def make_method(cls: type[Method], params: dict) -> Method:
+    """Instantiate with hyperparameters from the config; a typo is an error naming the field."""
+    config = cls.Config()
+    valid = sorted(f.name for f in dataclasses.fields(config))
+    bench = sorted(f.name for f in dataclasses.fields(BenchConfig) if f.name != "method_params")
+    for key, value in params.items():
+        if key not in valid:
+            raise RetainError(
+                f"unknown setting {key!r} for method {cls.name!r}; its hyperparameters: "
+                f"{', '.join(valid) or '(none)'}; benchmark settings: {', '.join(bench)}"
+            )
+        set_field(config, key, value)
+    return cls(config)
+
+
+def run_dir(cfg: BenchConfig, method: Method, seed: int) -> Path:
+    return Path(cfg.results_dir) / cfg.name / method.name / f"seed{seed}"
+
+
+def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: Foundation,
+               method: Method, seed: int, log_step=None, on_stage=None) -> RunResult:
+    """Stages 1..k for one method and seed, resuming from checkpoints in the run directory.
+
+    `log_step(global_step, metrics)` receives training metrics; `on_stage(record)` each new
+    stage's record (both for tracking).
+    """
+    out = run_dir(cfg, method, seed)
+    checkpoints = out / "stages"
+    policy = build_policy(cfg, suite)
+    policy.load_state_dict(foundation.policy_state)
+    theta0 = {k: v.clone() for k, v in foundation.policy_state.items()}
+    stages = [foundation.stage0]
+    foundation_data = data.foundation(cfg.foundation_tasks)
+
+    def context(stage: int, task: str, train) -> TaskContext:
+        return TaskContext(stage=stage, task=task, data=train, policy=policy,
+                           foundation_loss=foundation.final_loss, steps=cfg.steps_per_task)
+
+    run_key = run_settings_key(cfg, method, foundation.key)
+    resumed = _last_finished(checkpoints, len(cfg.stream_tasks), run_key)
+    if resumed is None:
+        method.after_task(context(0, "foundation", foundation_data))
+    else:
+        saved = load_checkpoint(checkpoints / f"stage_{resumed}.pt")
+        policy.load_state_dict(saved["policy"])
+        method.load_state_dict(saved["method"])
+        stages += [StageRecord(**r) for r in saved["records"]]
+    layer_rows: list[dict] = []
+    settings = TrainSettings(cfg.steps_per_task, cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.grad_clip)
+    for stage, task in enumerate(cfg.stream_tasks, start=1):
+        if stage <= len(stages) - 1:
+            continue
+        previous = {k: v.clone() for k, v in policy.state_dict().items()}
+        torch.manual_seed(derive_seed(seed, "stage", stage))
+        offset = cfg.foundation_steps + (stage - 1) * cfg.steps_per_task
+
+        def log(step, metrics, offset=offset):
+            if log_step is not None:
+                log_step(offset + step, metrics)
+
+        result = train_stage(context(stage, task, data.train[task]), method, settings,
+                             generator(seed, "stage", stage), log)
+        record = evaluate_stage(policy, suite, cfg, data, seed, stage, task)
+        record.train_loss = result.final_loss
+        current = policy.state_dict()
+        record.updates, layer_rows = update_stats(theta0, current)
+        record.updates_stage, _ = update_stats(previous, current)
+        stages.append(record)
+        save_checkpoint(checkpoints / f"stage_{stage}.pt", {
+            "run_key": run_key, "policy": current, "method": method.state_dict(),
+            "records": [s.as_dict() for s in stages[1:]],
+        })
+        if on_stage is not None:
+            on_stage(record)
+    if not layer_rows:
+        _, layer_rows = update_stats(theta0, policy.state_dict())
+    tasks = cfg.foundation_tasks + cfg.stream_tasks
+    result = RunResult(method.name, seed, out, stages, {}, tasks, layer_rows)
+    result.metrics = summary_metrics(cfg, result)
+    return result
+
+
+def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> str:
+    """Everything a stage checkpoint depends on; a checkpoint with another key is not resumed."""
+    settings = {k: v for k, v in cfg.as_dict().items() if k not in ("progress", "seed", "seeds", "method")}
+    blob = json.dumps([settings, method.name, method.hyperparameters(), foundation_key],
+                      sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _last_finished(checkpoints: Path, k: int, run_key: str) -> int | None:
+    """The highest stage whose checkpoint exists and was made with these exact settings."""
+    for stage in range(k, 0, -1):
+        path = checkpoints / f"stage_{stage}.pt"
+        if path.exists():
+            if load_checkpoint(path).get("run_key") == run_key:
+                return stage
+            print(f"note: {checkpoints} was written with other settings; starting this run over")
+            for old in checkpoints.glob("stage_*.pt"):
+                old.unlink()
+            return None
+    return None
+
+
+def summary_metrics(cfg: BenchConfig, result: RunResult) -> dict[str, float]:
+    tasks = result.tasks
+    foundation = [tasks.index(t) for t in cfg.foundation_tasks]
+    stream = [tasks.index(t) for t in cfg.stream_tasks]
+    core: CoreMetrics = core_metrics(result.success_matrix(), foundation, stream)
+    metrics = core.as_dict()
+    metrics["offline_retention"] = float(offline_retention(result.heldout_matrix(), foundation)[-1])
+    for key, value in result.stages[-1].updates.items():
+        metrics[f"update_{key}"] = value
+    return metrics

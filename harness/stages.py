@@ -1,0 +1,61 @@
+"""What every stage produces, and how it is saved: a record and an atomic checkpoint file."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from harness.atomic import atomic_path
+from harness.config import BenchConfig
+from harness.data import BenchmarkData
+from harness.evaluation import EvalSettings, evaluate_task, heldout_loss
+from harness.seeding import derive_seed
+from suites import Suite
+
+
+@dataclass
+class StageRecord:
+    stage: int
+    task: str  # "foundation" or the stream task trained at this stage
+    success: dict[str, float]  # task -> success rate over its evaluation episodes
+    episodes: dict[str, list[bool]]  # task -> per-episode success
+    heldout_loss: dict[str, float]  # task -> held-out flow-matching loss
+    train_loss: float = float("nan")
+    updates: dict[str, float] = field(default_factory=dict)  # theta_i vs theta_0
+    updates_stage: dict[str, float] = field(default_factory=dict)  # theta_i vs theta_{i-1}
+    env_steps: int = 0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def eval_settings(cfg: BenchConfig) -> EvalSettings:
+    return EvalSettings(episodes=cfg.eval_episodes, max_episode_steps=cfg.max_episode_steps,
+                        n_action_steps=cfg.n_action_steps, cameras=cfg.cameras,
+                        image_size=cfg.image_size)
+
+
+def evaluate_stage(policy, suite: Suite, cfg: BenchConfig, data: BenchmarkData, seed: int,
+                   stage: int, task: str) -> StageRecord:
+    """Roll out every task (foundation and stream) and measure every held-out loss."""
+    settings = eval_settings(cfg)
+    success, episodes, held, steps = {}, {}, {}, 0
+    for name in cfg.foundation_tasks + cfg.stream_tasks:
+        result = evaluate_task(policy, suite, name, data.instructions[name], settings,
+                               noise_seed=derive_seed(seed, "eval"))
+        success[name] = result.success_rate
+        episodes[name] = list(result.successes)
+        steps += result.steps
+        held[name] = heldout_loss(policy, data.heldout[name], derive_seed("heldout", name))
+    return StageRecord(stage, task, success, episodes, held, env_steps=steps)
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def load_checkpoint(path: Path) -> dict:
+    return torch.load(path, map_location="cpu", weights_only=False)

@@ -1,0 +1,125 @@
+"""MLflow tracking: one parent run per benchmark invocation, one child per (method, seed).
+
+The default store is SQLite under `results/` (artifacts beside it); `MLFLOW_TRACKING_URI` points
+at a shared `mlflow server` instead. The experiment is created before any run starts, so several
+processes logging to one SQLite file do not race to create it.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+import warnings
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from harness.errors import RetainError
+
+PACKAGES = ("torch", "numpy", "mujoco", "metaworld", "robosuite", "mlflow", "h5py",
+            "sentence-transformers")
+_MAX_BATCH = 1000  # MLflow's limit on metrics per log_batch call
+
+
+def tracking_uri(results_dir: str) -> str:
+    uri = os.environ.get("MLFLOW_TRACKING_URI")
+    if uri:
+        return uri
+    return f"sqlite:///{Path(results_dir).resolve() / 'mlflow.db'}"
+
+
+def package_versions() -> dict[str, str]:
+    out = {"python": sys.version.split()[0]}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "absent"
+    return out
+
+
+def git_commit() -> str:
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                             check=True, cwd=Path(__file__).parent).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, cwd=Path(__file__).parent).stdout
+        return sha + ("-dirty" if dirty.strip() else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+class Tracker:
+    """A thin layer over `MlflowClient` that knows Retain's run structure."""
+
+    def __init__(self, results_dir: str, experiment: str):
+        warnings.filterwarnings("ignore", module="mlflow")
+        os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+        os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
+        from mlflow.tracking import MlflowClient
+
+        Path(results_dir).mkdir(parents=True, exist_ok=True)
+        self.uri = tracking_uri(results_dir)
+        self.client = MlflowClient(tracking_uri=self.uri)
+        self.experiment_id = self._experiment(experiment, Path(results_dir).resolve() / "mlartifacts")
+
+    def _experiment(self, name: str, artifact_root: Path) -> str:
+        """Get or create the experiment; fail in one line if the store cannot be reached."""
+        for attempt in range(5):
+            try:
+                found = self.client.get_experiment_by_name(name)
+                if found is not None:
+                    return found.experiment_id
+                location = None if self.uri.startswith("http") else artifact_root.as_uri()
+                return self.client.create_experiment(name, artifact_location=location)
+            except Exception as exc:  # noqa: BLE001 - MLflow raises many types for one cause
+                text = str(exc)
+                if "already exists" in text or "UNIQUE constraint" in text or "locked" in text:
+                    time.sleep(0.2 * (attempt + 1))  # another process created it, or holds the lock
+                    continue
+                first = text.splitlines()[0] if text else type(exc).__name__
+                raise RetainError(f"tracking server {self.uri} is unreachable: {first[:200]}") from None
+        raise RetainError(f"could not create MLflow experiment {name!r} at {self.uri}")
+
+    def start_run(self, name: str, parent_id: str | None = None, tags: dict[str, str] | None = None) -> str:
+        tags = dict(tags or {})
+        if parent_id is not None:
+            tags["mlflow.parentRunId"] = parent_id
+        return self.client.create_run(self.experiment_id, run_name=name, tags=tags).info.run_id
+
+    def log_params(self, run_id: str, params: dict[str, Any]) -> None:
+        from mlflow.entities import Param
+
+        items = [Param(k, str(v)[:6000]) for k, v in sorted(params.items())]
+        for i in range(0, len(items), 100):
+            self.client.log_batch(run_id, params=items[i:i + 100])
+
+    def log_metrics(self, run_id: str, metrics: dict[str, float], step: int = 0) -> None:
+        self.log_metric_rows(run_id, [(step, metrics)])
+
+    def log_metric_rows(self, run_id: str, rows: list[tuple[int, dict[str, float]]]) -> None:
+        """Log many (step, metrics) rows in as few calls as MLflow allows."""
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = [Metric(_metric_key(k), float(v), now, step) for step, m in rows for k, v in m.items()
+                 if v == v]  # NaN is skipped: MLflow stores it, but plots break on it
+        for i in range(0, len(items), _MAX_BATCH):
+            self.client.log_batch(run_id, metrics=items[i:i + _MAX_BATCH])
+
+    def log_artifact(self, run_id: str, path: str | Path, artifact_path: str | None = None) -> None:
+        self.client.log_artifact(run_id, str(path), artifact_path)
+
+    def set_tags(self, run_id: str, tags: dict[str, str]) -> None:
+        for k, v in tags.items():
+            self.client.set_tag(run_id, k, v)
+
+    def end_run(self, run_id: str, status: str = "FINISHED") -> None:
+        self.client.set_terminated(run_id, status)
+
+
+def _metric_key(key: str) -> str:
+    """MLflow keys allow letters, digits, and _ - . / and space."""
+    return "".join(c if c.isalnum() or c in "_-./ " else "_" for c in key)

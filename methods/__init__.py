@@ -1,0 +1,60 @@
+"""Fine-tuning methods, one module each, all subclasses of `Method`, registered by name.
+
+`get_method("consft")` finds a registered method; `get_method("my_pkg.my_module:MyMethod")`
+imports a user's class from their own module without touching this repository.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from methods.base import Method, MethodConfig, TaskContext
+
+_REGISTRY: dict[str, type[Method]] = {}
+
+
+def register_method(cls: type[Method]) -> type[Method]:
+    """Class decorator: make a method available as `METHOD=<cls.name>`."""
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+register_method(Method)
+
+
+def _load_builtins() -> None:
+    import pkgutil
+
+    import methods as pkg
+
+    for info in pkgutil.iter_modules(pkg.__path__):
+        importlib.import_module(f"methods.{info.name}")
+
+
+def method_names() -> list[str]:
+    _load_builtins()
+    return sorted(_REGISTRY)
+
+
+def get_method(spec: str) -> type[Method]:
+    """A method class from a registered name or `module.path:ClassName`."""
+    if ":" in spec:
+        module_name, _, class_name = spec.partition(":")
+        try:
+            module = importlib.import_module(module_name)
+        except ImportError as exc:
+            raise ValueError(f"cannot import method module {module_name!r} ({exc})") from None
+        cls = getattr(module, class_name, None)
+        if cls is None:
+            raise ValueError(f"module {module_name!r} has no class {class_name!r}")
+        if not (isinstance(cls, type) and issubclass(cls, Method)):
+            raise ValueError(f"{spec!r} is not a method: it must subclass methods.Method")
+        return cls
+    _load_builtins()
+    if spec not in _REGISTRY:
+        valid = ", ".join(sorted(_REGISTRY))
+        raise ValueError(f"unknown method {spec!r}; valid: {valid}, or module.path:ClassName")
+    return _REGISTRY[spec]
+
+
+__all__ = ["Method", "MethodConfig", "TaskContext", "register_method", "method_names", "get_method"]

@@ -1,0 +1,84 @@
+"""The fine-tuning method contract: plain SFT, plus the hooks every other method overrides.
+
+The trainer calls, for each task of the stream (and once for the foundation stage):
+
+    before_task(ctx)                  may look at the task's data (ctx.data)
+    for each step:
+        batch = sample_batch(ctx, batch_size, generator)
+        per_sample = policy(batch)    [B] flow-matching losses
+        loss, stats = loss(per_sample, batch, policy)
+        loss.backward(); optimizer.step()
+        after_step(policy)
+    after_task(ctx)                   what a method keeps (a replay buffer, a Fisher) it takes here
+
+A method sees a task's data only during that task's stage; what it keeps must live in its own
+`state_dict`, which the checkpoint of every stage stores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import torch
+
+from harness.datasets import TrainingData
+
+
+@dataclass
+class TaskContext:
+    """What a method may see of the current stage."""
+
+    stage: int  # 0 is the foundation stage, 1..k the stream tasks
+    task: str  # the stream task, or "foundation"
+    data: TrainingData  # this stage's training samples, and nothing earlier
+    policy: torch.nn.Module
+    foundation_loss: float  # the foundation's final training loss, kept in its checkpoint
+    steps: int  # optimizer steps planned for this stage
+
+
+@dataclass
+class MethodConfig:
+    """Hyperparameters of a method; subclasses extend it with their own fields."""
+
+
+class Method:
+    """Plain supervised fine-tuning: the mean of the per-sample flow-matching losses."""
+
+    name: ClassVar[str] = "sft"
+    Config: ClassVar[type[MethodConfig]] = MethodConfig
+    uses_past_data: ClassVar[bool] = False  # replay-style methods say True; the report shows it
+
+    def __init__(self, config: MethodConfig | None = None):
+        self.config = config if config is not None else self.Config()
+
+    # -- hooks -------------------------------------------------------------------------------
+
+    def before_task(self, ctx: TaskContext) -> None:
+        """Called before training on a task (stage 0 is the foundation)."""
+
+    def sample_batch(self, ctx: TaskContext, batch_size: int, generator: torch.Generator) -> dict:
+        return ctx.data.sample(batch_size, generator)
+
+    def loss(self, per_sample: torch.Tensor, batch: dict, policy: torch.nn.Module
+             ) -> tuple[torch.Tensor, dict[str, float]]:
+        """Reduce per-sample losses [B] to the scalar to minimise, plus stats to log."""
+        return per_sample.mean(), {}
+
+    def after_step(self, policy: torch.nn.Module) -> None:
+        """Called after every optimizer step."""
+
+    def after_task(self, ctx: TaskContext) -> None:
+        """Called after training on a task, with the trained policy and the task's data."""
+
+    # -- checkpoints -------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        pass
+
+    def hyperparameters(self) -> dict[str, Any]:
+        return dataclasses.asdict(self.config)

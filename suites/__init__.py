@@ -1,0 +1,45 @@
+"""Task suites: simulated environments, scripted experts, and their registry by name."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+
+from suites.base import Suite, TaskEnv, StepResult, Observation, episode_seeds, unknown, UnknownName
+
+_SUITES: dict[str, str] = {
+    # name -> module that defines and registers it; imported lazily (simulators are slow to load)
+    "metaworld": "suites.metaworld",
+    "libero_rs": "suites.robosuite_libero",
+    "bimanual": "suites.bimanual",
+}
+_FACTORIES: dict[str, Callable[[], Suite]] = {}
+
+
+def register_suite(name: str):
+    """Class decorator: make a suite constructible by name."""
+
+    def wrap(cls):
+        _FACTORIES[name] = cls
+        cls.name = name
+        return cls
+
+    return wrap
+
+
+def suite_names() -> list[str]:
+    return sorted(_SUITES)
+
+
+def get_suite(name: str) -> Suite:
+    if name not in _SUITES:
+        raise unknown("suite", name, _SUITES)
+    if name not in _FACTORIES:
+        importlib.import_module(_SUITES[name])
+    return _FACTORIES[name]()
+
+
+__all__ = [
+    "Suite", "TaskEnv", "StepResult", "Observation", "episode_seeds", "unknown", "UnknownName",
+    "register_suite", "suite_names", "get_suite",
+]

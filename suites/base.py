@@ -1,0 +1,91 @@
+"""The contract every task suite fulfils, so the harness never knows which simulator it drives.
+
+A suite names its tasks, gives each a language instruction, and builds a `TaskEnv`: a simulator
+reset to a seeded initial state, stepped with actions in [-1, 1], reporting success from simulator
+state, and able to ask its scripted expert (which reads privileged state) for the next action.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+Observation = dict[str, np.ndarray]
+"""Observation keys: "state" (float32 vector: proprioception and object state) always;
+"agentview_image" and "wrist_image" (uint8 HxWx3) when a suite renders cameras."""
+
+
+class UnknownName(ValueError):
+    """A name (task, suite, benchmark, method) that is not among the valid choices."""
+
+
+def unknown(kind: str, value: str, valid) -> UnknownName:
+    """One-line error naming the bad value and what is valid."""
+    choices = ", ".join(sorted(valid))
+    return UnknownName(f"unknown {kind} {value!r}; valid: {choices}")
+
+
+@dataclass(frozen=True)
+class StepResult:
+    obs: Observation
+    success: bool
+
+
+class TaskEnv(ABC):
+    """One task's simulator. Episodes start from `reset(seed)`: the same seed, the same state."""
+
+    @abstractmethod
+    def reset(self, seed: int) -> Observation: ...
+
+    @abstractmethod
+    def step(self, action: np.ndarray) -> StepResult: ...
+
+    @abstractmethod
+    def expert_action(self) -> np.ndarray:
+        """The scripted expert's action for the current state (it may read privileged state)."""
+
+    def close(self) -> None:  # noqa: B027 - optional
+        pass
+
+
+class Suite(ABC):
+    """A family of tasks on one simulator, with the dimensions every task shares."""
+
+    name: str
+    state_dim: int
+    action_dim: int
+    max_episode_steps: int
+
+    @abstractmethod
+    def task_names(self) -> list[str]: ...
+
+    @abstractmethod
+    def instruction(self, task: str) -> str: ...
+
+    @abstractmethod
+    def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv: ...
+
+    def check_task(self, task: str) -> str:
+        if task not in self.task_names():
+            raise unknown(f"{self.name} task", task, self.task_names())
+        return task
+
+    def version(self) -> str:
+        """Part of the demo-cache key: bump when observations, experts or success change."""
+        return "1"
+
+
+def episode_seeds(suite: str, task: str, split: str, n: int) -> list[int]:
+    """Fixed initial-state seeds for one task and split ("demo", "heldout", "eval").
+
+    Derived from names, not from a global RNG, so every method, stage and machine sees the
+    same episodes, and adding a task never shifts another task's episodes.
+    """
+    out = []
+    for i in range(n):
+        digest = hashlib.sha256(f"{suite}/{task}/{split}/{i}".encode()).digest()
+        out.append(int.from_bytes(digest[:4], "little") & 0x7FFFFFFF)
+    return out

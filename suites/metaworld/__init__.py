@@ -1,0 +1,98 @@
+"""Meta-World v3 (Sawyer arm, MuJoCo): every task that has a scripted expert in `metaworld.policies`.
+
+Observations are Meta-World's 39-d goal-observable state (hand, gripper, two objects, the previous
+frame of those, goal). Initial states are seeded per episode through Meta-World's own
+`seeded_rand_vec` path, so `reset(seed)` is reproducible across processes.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from suites import register_suite
+from suites.base import Observation, StepResult, Suite, TaskEnv
+from suites.metaworld.instructions import INSTRUCTIONS
+
+_STATE_DIM = 39
+_ACTION_DIM = 4
+
+
+def _env_classes():
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE
+
+    return ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE
+
+
+def _expert_classes():
+    from metaworld.policies import ENV_POLICY_MAP
+
+    return ENV_POLICY_MAP
+
+
+class MetaWorldEnv(TaskEnv):
+    def __init__(self, task: str, cameras: bool, image_size: int):
+        import warnings
+
+        warnings.filterwarnings("ignore", message="Constant\\(s\\) may be too high")
+        self.task = task
+        self._env = _env_classes()[f"{task}-goal-observable"](seed=0)
+        self._expert = _expert_classes()[task]()
+        self._obs: np.ndarray | None = None
+        self._renderer = None
+        if cameras:
+            import mujoco
+
+            self._renderer = mujoco.Renderer(self._env.model, image_size, image_size)
+
+    def _observation(self, raw: np.ndarray) -> Observation:
+        self._obs = raw
+        obs = {"state": raw.astype(np.float32)}
+        if self._renderer is not None:
+            for key, camera in (("agentview_image", "corner"), ("wrist_image", "gripperPOV")):
+                self._renderer.update_scene(self._env.data, camera=camera)
+                obs[key] = self._renderer.render().copy()
+        return obs
+
+    def reset(self, seed: int) -> Observation:
+        env = self._env
+        env._freeze_rand_vec = False
+        env.seeded_rand_vec = True
+        env.seed(int(seed))
+        raw, _ = env.reset()
+        return self._observation(raw)
+
+    def step(self, action: np.ndarray) -> StepResult:
+        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        raw, _reward, _term, _trunc, info = self._env.step(action)
+        return StepResult(self._observation(raw), bool(info["success"]))
+
+    def expert_action(self) -> np.ndarray:
+        assert self._obs is not None, "reset() first"
+        return np.clip(self._expert.get_action(self._obs), -1.0, 1.0).astype(np.float32)
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+        self._env.close()
+
+
+@register_suite("metaworld")
+class MetaWorldSuite(Suite):
+    state_dim = _STATE_DIM
+    action_dim = _ACTION_DIM
+    max_episode_steps = 500  # Meta-World's own limit; benchmarks usually set less
+
+    def __init__(self):
+        os.environ.setdefault("MUJOCO_GL", "egl")
+
+    def task_names(self) -> list[str]:
+        envs = {name.removesuffix("-goal-observable") for name in _env_classes()}
+        return sorted(envs & set(_expert_classes()) & set(INSTRUCTIONS))
+
+    def instruction(self, task: str) -> str:
+        return INSTRUCTIONS[self.check_task(task)]
+
+    def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv:
+        return MetaWorldEnv(self.check_task(task), cameras, image_size)

@@ -1,0 +1,71 @@
+"""The `tiny` profile end to end: demos, foundation, stream, evaluation, outputs, MLflow."""
+
+import json
+
+import numpy as np
+import pytest
+
+from harness.cli import main
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tiny")
+    args = ["bench", "PROFILE=tiny", "METHOD=sft", f"results_dir={root}/results",
+            f"cache_dir={root}/cache", "progress=false"]
+    assert main(args) == 0
+    return root, args
+
+
+def test_outputs_on_disk(tiny_run):
+    root, _ = tiny_run
+    run = root / "results" / "mw-quick" / "sft" / "seed0"
+    for name in ("success_matrix.csv", "metrics.json", "config.yaml", "success_matrix.png",
+                 "heldout_loss.csv", "updates_per_layer.csv"):
+        assert (run / name).stat().st_size > 0, name
+    lines = (run / "success_matrix.csv").read_text().splitlines()
+    assert lines[0].split(",")[:3] == ["stage", "trained_on", "reach-v3"]
+    assert len(lines) == 1 + 3  # stage 0 and two stream stages (tiny keeps two)
+    R = np.array([[float(x) for x in line.split(",")[2:]] for line in lines[1:]])
+    assert R.shape == (3, 4) and ((R >= 0) & (R <= 1)).all()
+    metrics = json.loads((run / "metrics.json").read_text())["metrics"]
+    assert metrics["foundation_success_stage0"] == pytest.approx(R[0, :2].mean())
+    assert metrics["retention"] == pytest.approx(R[2, :2].mean())
+    assert metrics["plasticity"] == pytest.approx((R[1, 2] + R[2, 3]) / 2)
+    assert 0 < metrics["update_relative_l2"]
+    config = (run / "config.yaml").read_text()
+    assert "git_commit" in config and "torch" in config and "steps_per_task: 10" in config
+
+
+def test_mlflow_has_parent_and_child_runs(tiny_run):
+    from mlflow.tracking import MlflowClient
+
+    root, _ = tiny_run
+    client = MlflowClient(tracking_uri=f"sqlite:///{root}/results/mlflow.db")
+    experiment = client.get_experiment_by_name("mw-quick")
+    runs = client.search_runs([experiment.experiment_id])
+    children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    assert len(parents) == 1 and len(children) == 1
+    child = children[0]
+    assert child.data.tags["mlflow.parentRunId"] == parents[0].info.run_id
+    assert child.data.params["method"] == "sft" and child.data.params["config.seed"] == "0"
+    assert "retention" in child.data.metrics and "foundation_success" in child.data.metrics
+    history = client.get_metric_history(child.info.run_id, "foundation_success")
+    assert sorted(m.step for m in history) == [0, 1, 2]
+    artifacts = {a.path for a in client.list_artifacts(child.info.run_id)}
+    assert {"success_matrix.csv", "metrics.json", "success_matrix.png"} <= artifacts
+
+
+def test_second_run_reuses_demos_foundation_and_stages(tiny_run, monkeypatch):
+    root, args = tiny_run
+    before = (root / "results/mw-quick/sft/seed0/success_matrix.csv").read_text()
+
+    def fail(*a, **k):
+        raise AssertionError("work was redone instead of reused")
+
+    monkeypatch.setattr("harness.demos.generate_demos", fail)
+    monkeypatch.setattr("harness.foundation.train_stage", fail)
+    monkeypatch.setattr("harness.runner.train_stage", fail)
+    assert main(args) == 0
+    assert (root / "results/mw-quick/sft/seed0/success_matrix.csv").read_text() == before
