@@ -34,6 +34,7 @@ class TrainingData:
         out["action_mask"] = self.action_mask[idx]
         out["instruction"] = self.instruction_table[self.task_index[idx]]
         out["task_index"] = self.task_index[idx]
+        out["index"] = idx
         return out
 
     def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -46,6 +47,10 @@ class TrainingData:
 
     def for_task(self, task: str) -> TrainingData:
         return self.subset(torch.nonzero(self.task_index == self.task_names.index(task)).flatten())
+
+    def random_subset(self, n: int, generator: torch.Generator) -> TrainingData:
+        """At most `n` samples drawn without replacement."""
+        return self.subset(torch.randperm(len(self), generator=generator)[:n])
 
     @staticmethod
     def concat(parts: list[TrainingData]) -> TrainingData:
@@ -91,3 +96,9 @@ def chunk_episodes(
         torch.from_numpy(np.asarray(instruction_embedding, np.float32)[None]),
         [task],
     )
+
+
+def merge_batches(*batches: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """One batch from several (same keys); "index" and "task_index" lose their meaning."""
+    keys = [k for k in batches[0] if k not in ("index", "task_index")]
+    return {k: torch.cat([b[k] for b in batches]) for k in keys}

@@ -78,3 +78,58 @@ def offline_retention(heldout: np.ndarray, foundation: list[int]) -> np.ndarray:
     """Held-out flow-matching loss on foundation tasks, stage i over stage 0: [k+1]."""
     losses = heldout[:, foundation].mean(axis=1)
     return losses / losses[0]
+
+
+# --- LIBERO's learning-curve metrics (Liu et al., 2023, "LIBERO: Benchmarking Knowledge Transfer
+# for Lifelong Robot Learning", section 5.1) -------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LiberoMetrics:
+    """FWT (higher is better), NBT (lower is better) and AUC (higher is better) over the stream."""
+
+    fwt: float
+    nbt: float
+    auc: float
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+def libero_metrics(curves: list[np.ndarray], R: np.ndarray, stream: list[int]) -> LiberoMetrics:
+    """LIBERO's FWT, NBT and AUC for a stream of K tasks, from evaluations taken inside each stage.
+
+    Why: the success matrix only sees each task at the end of its stage; LIBERO's metrics also
+    reward learning a task quickly, which needs evaluations every N steps inside the stage.
+
+    Inputs, with k = 1..K indexing the stream task s_k trained at stage k:
+    - `curves[k-1]` = c_{k,k,e}: success on s_k at the evaluation checkpoints e of stage k, the
+      first at e = 0 (before any step on s_k) and the last at the end of the stage. LIBERO uses
+      11 checkpoints (epochs 0, 5, ..., 50); any number m+1 >= 1 works here.
+    - `R` (the success matrix) and `stream` (its column of s_k): c_{tau,k} = R[tau, s_k], success
+      on s_k after stage tau > k.
+
+    With c_{k,k} = max_e c_{k,k,e} (the best success while learning s_k):
+        FWT_k = mean_e c_{k,k,e}                                   FWT = sum_k FWT_k / K
+        NBT_k = 1/(K-k) * sum_{tau=k+1..K} (c_{k,k} - c_{tau,k})   NBT = sum_k NBT_k / K
+        AUC_k = 1/(K-k+1) * (FWT_k + sum_{tau=k+1..K} c_{tau,k})   AUC = sum_k AUC_k / K
+    NBT_K is an empty sum, taken as 0, so NBT divides by K as the paper writes.
+
+    One difference from LIBERO, by design: LIBERO continues from the earliest best checkpoint
+    of each task (so c_{tau,k} is measured there); Retain continues from the stage's final
+    weights, so c_{tau,k} is the success matrix entry at the end of stage tau.
+    """
+    K = len(stream)
+    if K == 0 or len(curves) != K:
+        raise ValueError(f"need one learning curve per stream task: {len(curves)} curves, {K} tasks")
+    if any(len(c) == 0 for c in curves):
+        raise ValueError("every learning curve needs at least one evaluation")
+    fwt_k, nbt_k, auc_k = [], [], []
+    for k, (curve, s) in enumerate(zip(curves, stream), start=1):
+        fwt = float(np.mean(curve))
+        later = R[k + 1:K + 1, s]  # c_{tau,k} for tau = k+1..K
+        nbt_k.append(float(np.mean(np.max(curve) - later)) if later.size else 0.0)
+        auc_k.append((fwt + float(later.sum())) / (K - k + 1))
+        fwt_k.append(fwt)
+    return LiberoMetrics(fwt=float(np.mean(fwt_k)), nbt=float(np.mean(nbt_k)),
+                         auc=float(np.mean(auc_k)))

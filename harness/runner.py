@@ -54,7 +54,10 @@ def make_method(cls: type[Method], params: dict) -> Method:
                 f"{', '.join(valid) or '(none)'}; benchmark settings: {', '.join(bench)}"
             )
         set_field(config, key, value)
-    return cls(config)
+    try:
+        return cls(config)
+    except ValueError as exc:
+        raise RetainError(str(exc).splitlines()[0]) from None
 
 
 def run_dir(cfg: BenchConfig, method: Method, seed: int) -> Path:

@@ -41,9 +41,9 @@ def train_stage(
     """
     policy = ctx.policy
     policy.train()
+    method.before_task(ctx)  # first: a method may freeze parameters here
     params = [p for p in policy.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=settings.lr, weight_decay=settings.weight_decay)
-    method.before_task(ctx)
     tail = max(1, settings.steps // 10)
     tail_losses: list[float] = []
     for step in range(settings.steps):

@@ -1,0 +1,106 @@
+"""Group runs into table rows: one row per method setting, its seeds as the samples.
+
+Why a row is more than a method name: averaging runs made with different settings (two SFT
+learning rates, two ConSFT kappas) would hide exactly what a sweep measures. A run tagged
+`sweep_point` ("kappa=0.1") gets the row "consft[kappa=0.1]"; untagged runs of one method whose
+settings differ get the differing settings in their label ("sft[lr=0.001]").
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from harness.report.runs import RunRecord
+
+# config fields that do not change what a run measures (or name the method/seed themselves)
+NOT_SETTINGS = {"seed", "seeds", "method", "method_params", "progress", "results_dir", "cache_dir",
+                "torch_threads"}
+
+
+@dataclass(frozen=True)
+class Row:
+    """The runs of one method setting, one per seed (the newest when a seed was run twice)."""
+
+    label: str
+    method: str
+    sweep_point: str
+    runs: list[RunRecord]  # sorted by seed
+    missing_seeds: list[int]  # seeds other rows have and this one lacks
+
+    @property
+    def seeds(self) -> list[int]:
+        return [r.seed for r in self.runs]
+
+    @property
+    def lr(self) -> float | None:
+        value = self.runs[0].params.get("config.lr")
+        return float(value) if value is not None else None
+
+    def seeds_text(self) -> str:
+        """"3" when complete, else e.g. "2/3: missing seed 2"."""
+        n, total = len(self.runs), len(self.runs) + len(self.missing_seeds)
+        if not self.missing_seeds:
+            return str(n)
+        word = "seed" if len(self.missing_seeds) == 1 else "seeds"
+        return f"{n}/{total}: missing {word} {', '.join(map(str, self.missing_seeds))}"
+
+
+def settings(run: RunRecord) -> dict[str, str]:
+    """The params that define what a run measures: benchmark settings and method hyperparameters."""
+    out = {}
+    for key, value in run.params.items():
+        if key.startswith("config.") and key.removeprefix("config.") not in NOT_SETTINGS:
+            out[key.removeprefix("config.")] = value
+        elif key.startswith("method."):
+            out[key.removeprefix("method.")] = value
+    return out
+
+
+def label_of(run: RunRecord, varying: list[str]) -> str:
+    if run.sweep_point:
+        return f"{run.method}[{run.sweep_point}]"
+    if not varying:
+        return run.method
+    s = settings(run)
+    return f"{run.method}[{','.join(k + '=' + s.get(k, '-') for k in varying)}]"
+
+
+def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:
+    """Rows (SFT first, then by label) and the number of older duplicate runs left out."""
+    varying = _varying_settings(runs)
+    by_label: dict[str, dict[int, RunRecord]] = {}
+    superseded = 0
+    for run in sorted(runs, key=lambda r: (r.start_time, r.run_id)):  # newest last: it wins
+        label = label_of(run, varying.get(run.method, []))
+        seeds = by_label.setdefault(label, {})
+        superseded += run.seed in seeds
+        seeds[run.seed] = run
+    all_seeds = sorted({seed for seeds in by_label.values() for seed in seeds})
+    rows = []
+    for label, seeds in by_label.items():
+        first = next(iter(seeds.values()))
+        rows.append(Row(label=label, method=first.method, sweep_point=first.sweep_point,
+                        runs=[seeds[s] for s in sorted(seeds)],
+                        missing_seeds=[s for s in all_seeds if s not in seeds]))
+    rows.sort(key=lambda r: (r.method != "sft", r.method, _natural(r.label)))
+    return rows, superseded
+
+
+def _varying_settings(runs: list[RunRecord]) -> dict[str, list[str]]:
+    """Per method, the settings that differ between its untagged runs."""
+    by_method: dict[str, list[dict[str, str]]] = {}
+    for run in runs:
+        if not run.sweep_point:
+            by_method.setdefault(run.method, []).append(settings(run))
+    out = {}
+    for method, all_settings in by_method.items():
+        keys = sorted({k for s in all_settings for k in s})
+        out[method] = [k for k in keys if len({s.get(k) for s in all_settings}) > 1]
+    return out
+
+
+def _natural(label: str) -> tuple:
+    """Sort "lr=0.0003" before "lr=0.001": numbers compare as numbers."""
+    parts = re.split(r"(\d+(?:\.\d+)?(?:e-?\d+)?)", label)
+    return tuple((0, float(p), "") if i % 2 else (1, 0.0, p) for i, p in enumerate(parts))

@@ -1,0 +1,189 @@
+"""The report's figures, one function per figure, all drawn from `RowSummary` values.
+
+PNGs are written without the matplotlib version in their metadata and from plain `Figure`
+objects (no pyplot state), so the same summaries always give the same bytes.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from harness.atomic import atomic_path
+from harness.report.aggregate import RowSummary
+
+DPI = 120
+
+
+def save(fig: Figure, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI, metadata={"Software": None})
+
+
+def colors(summaries: list[RowSummary]) -> dict[str, tuple]:
+    """One fixed color per row, the same in every figure."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10" if len(summaries) <= 10 else "tab20"]
+    return {s.label: cmap(i % cmap.N) for i, s in enumerate(summaries)}
+
+
+def short(task: str) -> str:
+    """Task names without the version suffix ("drawer-close-v3" -> "drawer-close")."""
+    return re.sub(r"-v\d+$", "", task)
+
+
+def success_heatmap(path: Path, s: RowSummary, benchmark: str) -> None:
+    """Stages (rows) by tasks (columns), foundation tasks left of the red line; the cell of the
+    task trained at each stage is outlined (its value is that task's plasticity term)."""
+    R, tasks = s.success_mean, s.foundation_tasks + s.stream_tasks
+    n_f = len(s.foundation_tasks)
+    fig = Figure(figsize=(2.2 + 0.62 * len(tasks), 1.6 + 0.5 * len(R)))
+    ax = fig.add_subplot()
+    im = ax.imshow(np.ma.masked_invalid(R), vmin=0, vmax=1, cmap="viridis", aspect="auto")
+    im.cmap.set_bad("lightgrey")
+    for (i, j), v in np.ndenumerate(R):
+        ax.text(j, i, "n/a" if np.isnan(v) else f"{v:.2f}", ha="center", va="center", fontsize=8,
+                color="white" if np.isnan(v) or v < 0.6 else "black")
+    for i in range(1, len(R)):
+        ax.add_patch(_outline(i, n_f + i - 1))
+    ax.axvline(n_f - 0.5, color="red", linewidth=2)
+    ax.set_xticks(range(len(tasks)), [short(t) for t in tasks], rotation=50, ha="right", fontsize=8)
+    stage_names = ["foundation"] + [short(t) for t in s.stream_tasks]
+    ax.set_yticks(range(len(R)), [f"{i}: {t}" for i, t in enumerate(stage_names)], fontsize=8)
+    ax.set_xlabel("evaluated task (left of red line: foundation; right: stream)")
+    ax.set_ylabel("stage: trained on")
+    ax.set_title(f"{benchmark}: {s.label}, success rate (mean of {len(s.row.runs)} seeds)",
+                 fontsize=10)
+    fig.colorbar(im, ax=ax, label="success rate")
+    fig.tight_layout()
+    save(fig, path)
+
+
+def _outline(row: int, col: int):
+    from matplotlib.patches import Rectangle
+
+    return Rectangle((col - 0.5, row - 0.5), 1, 1, fill=False, edgecolor="white", linewidth=1.5)
+
+
+def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
+    """Foundation success after each stage: one line per row, its 95% CI band over seeds."""
+    fig = Figure(figsize=(8, 4.5))
+    ax = fig.add_subplot()
+    color = colors(summaries)
+    for s in summaries:
+        x = np.arange(len(s.foundation_by_stage))
+        mean = np.array([c.mean for c in s.foundation_by_stage])
+        ax.plot(x, mean, marker="o", color=color[s.label], label=s.label)
+        if all(c.has_interval for c in s.foundation_by_stage):
+            ax.fill_between(x, [c.low for c in s.foundation_by_stage],
+                            [c.high for c in s.foundation_by_stage], color=color[s.label], alpha=0.2)
+    first = summaries[0]
+    names = ["foundation"] + [short(t) for t in first.stream_tasks]
+    ax.set_xticks(range(len(names)), [f"{i}\n{t}" for i, t in enumerate(names)], fontsize=8)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("stage (task trained at that stage)")
+    ax.set_ylabel("foundation success (mean over foundation tasks)")
+    ax.set_title(f"{benchmark}: retention of the foundation tasks (band: 95% CI over seeds)",
+                 fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
+    fig.tight_layout()
+    save(fig, path)
+
+
+def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
+    """One point per row (error bars: 95% CI); SFT's learning-rate sweep as the frontier line."""
+    fig = Figure(figsize=(7.5, 6))
+    ax = fig.add_subplot()
+    color = colors(summaries)
+    for s in summaries:
+        x, y = s.cells["plasticity"], s.cells["retention"]
+        if not (x.n and y.n):
+            continue
+        ax.errorbar(x.mean, y.mean, xerr=_err(x), yerr=_err(y), fmt="o", color=color[s.label],
+                    capsize=3, label=s.label)
+        ax.annotate(s.label, (x.mean, y.mean), xytext=(5, 5), textcoords="offset points",
+                    fontsize=8)
+    frontier = sft_frontier(summaries)
+    if frontier:
+        ax.plot([p[0] for p in frontier], [p[1] for p in frontier], "--", color="black",
+                linewidth=1.2, label="SFT learning-rate sweep: the frontier to beat", zorder=0)
+    ax.set_xlim(-0.02, 1.02)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("plasticity (mean success on each stream task right after its stage)")
+    ax.set_ylabel("retention (foundation success after the last stage)")
+    ax.set_title(f"{benchmark}: plasticity vs retention (up and right is better)", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    save(fig, path)
+
+
+def sft_frontier(summaries: list[RowSummary]) -> list[tuple[float, float]]:
+    """(plasticity, retention) of SFT rows with distinct learning rates, by plasticity; [] when
+    SFT ran at fewer than two learning rates."""
+    points = {s.row.lr: (s.cells["plasticity"].mean, s.cells["retention"].mean)
+              for s in summaries if s.row.method == "sft" and s.row.lr is not None
+              and s.cells["plasticity"].n and s.cells["retention"].n}
+    return sorted(points.values()) if len(points) >= 2 else []
+
+
+def _err(cell) -> np.ndarray | None:
+    if not cell.has_interval:
+        return None
+    return np.array([[cell.mean - cell.low], [cell.high - cell.mean]])
+
+
+def update_distribution(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
+    """Grouped bars: fraction of all trainable scalars per bin of |delta theta| / RMS(theta_0)."""
+    rows = [s for s in summaries if s.updates is not None]
+    fig = Figure(figsize=(8, 4.5))
+    ax = fig.add_subplot()
+    color = colors(summaries)
+    if rows:
+        bins = rows[0].updates.bins
+        width = 0.8 / len(rows)
+        for i, s in enumerate(rows):
+            x = np.arange(len(bins)) + (i - (len(rows) - 1) / 2) * width
+            bars = ax.bar(x, s.updates.fractions, width, color=color[s.label], label=s.label)
+            ax.bar_label(bars, [f"{v:.0%}" for v in s.updates.fractions], fontsize=7)
+        ax.set_xticks(range(len(bins)), bins)
+        ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    ax.set_ylim(0, 1.08)
+    ax.set_xlabel("|delta theta| / RMS(theta_0) of its tensor, theta_k vs theta_0")
+    ax.set_ylabel("fraction of trainable scalars (mean over seeds)")
+    ax.set_title(f"{benchmark}: how much of the network moved (left bin: unchanged)", fontsize=10)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    save(fig, path)
+
+
+def layer_relative_l2(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
+    """Horizontal grouped bars: per layer, ||theta_k - theta_0|| / ||theta_0||, one bar per row."""
+    rows = [s for s in summaries if s.layer_relative_l2]
+    layers = list(dict.fromkeys(name for s in rows for name in s.layer_relative_l2))
+    height = 0.8 / max(len(rows), 1)
+    fig = Figure(figsize=(9, 1.6 + len(layers) * max(0.28, 0.13 * len(rows))))
+    ax = fig.add_subplot()
+    color = colors(summaries)
+    for i, s in enumerate(rows):
+        y = np.arange(len(layers)) + (i - (len(rows) - 1) / 2) * height
+        ax.barh(y, [s.layer_relative_l2.get(name, 0.0) for name in layers], height,
+                color=color[s.label], label=s.label)
+    values = [v for s in rows for v in s.layer_relative_l2.values()]
+    if values and min(values) > 0:
+        ax.set_xscale("log")
+    ax.set_yticks(range(len(layers)), layers, fontsize=7)
+    ax.invert_yaxis()  # first layer on top
+    ax.set_xlabel("relative L2 of the update, ||theta_k - theta_0|| / ||theta_0|| (mean over seeds)")
+    ax.set_title(f"{benchmark}: update size per layer", fontsize=10)
+    ax.grid(axis="x", alpha=0.3)
+    if rows:
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.08 - 1.0 / max(len(layers), 1)),
+                  ncol=min(len(rows), 4))
+    fig.tight_layout()
+    save(fig, path)

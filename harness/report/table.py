@@ -1,0 +1,115 @@
+"""The comparison table (rows: method settings, columns: metrics) as Markdown, CSV and LaTeX.
+
+Each cell is the mean over seeds with its 95% bootstrap interval; the best row of each column is
+marked (bold), by the column's direction. Means are compared as printed (3 decimals), so rows
+that print the same value are marked together.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+
+from harness.bootstrap import Interval
+from harness.report.aggregate import Metric, RowSummary, shown_metrics
+
+DIGITS = 3
+
+
+def best_labels(summaries: list[RowSummary], metric: Metric) -> set[str]:
+    """Labels of the rows with the best printed mean in this column (none if no row has data)."""
+    values = {s.label: round(s.cells[metric.key].mean, DIGITS) for s in summaries
+              if s.cells[metric.key].n}
+    if not values:
+        return set()
+    best = max(values.values()) if metric.higher_is_better else min(values.values())
+    return {label for label, v in values.items() if v == best}
+
+
+def arrow(metric: Metric) -> str:
+    return "↑" if metric.higher_is_better else "↓"
+
+
+def _num(v: float) -> str:
+    return f"{v:.{DIGITS}f}"
+
+
+def cell_text(cell: Interval) -> tuple[str, str]:
+    """(mean, interval) as printed; the interval is "" with one seed, the mean "n/a" with none."""
+    if cell.n == 0 or math.isnan(cell.mean):
+        return "n/a", ""
+    if not cell.has_interval:
+        return _num(cell.mean), ""
+    return _num(cell.mean), f"[{_num(cell.low)}, {_num(cell.high)}]"
+
+
+def markdown_table(summaries: list[RowSummary]) -> str:
+    metrics = shown_metrics(summaries)
+    best = {m.key: best_labels(summaries, m) for m in metrics}
+    lines = ["| method | seeds | " + " | ".join(f"{m.title} {arrow(m)}" for m in metrics) + " |",
+             "|---|---|" + "---|" * len(metrics)]
+    for s in summaries:
+        cells = []
+        for m in metrics:
+            mean, interval = cell_text(s.cells[m.key])
+            if s.label in best[m.key]:
+                mean = f"**{mean}**"
+            cells.append(f"{mean} {interval}".strip())
+        lines.append(f"| {s.label} | {s.row.seeds_text()} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def csv_table(summaries: list[RowSummary]) -> str:
+    """Machine-readable: full-precision mean, CI bounds and sample count per metric."""
+    metrics = shown_metrics(summaries)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    header = ["label", "method", "sweep_point", "lr", "n_seeds", "seeds", "missing_seeds"]
+    for m in metrics:
+        header += [f"{m.key}_mean", f"{m.key}_ci_low", f"{m.key}_ci_high", f"{m.key}_n",
+                   f"{m.key}_best"]
+    writer.writerow(header)
+    for s in summaries:
+        row = s.row
+        line = [row.label, row.method, row.sweep_point, _full(row.lr), len(row.runs),
+                ";".join(map(str, row.seeds)), ";".join(map(str, row.missing_seeds))]
+        for m in metrics:
+            c = s.cells[m.key]
+            line += [_full(c.mean if c.n else None), _full(c.low), _full(c.high), c.n,
+                     int(s.label in best_labels(summaries, m))]
+        writer.writerow(line)
+    return buf.getvalue()
+
+
+def _full(v: float | None) -> str:
+    return "" if v is None or math.isnan(v) else repr(float(v))
+
+
+def latex_table(summaries: list[RowSummary]) -> str:
+    """A booktabs tabular (needs \\usepackage{booktabs}); the interval in small type."""
+    metrics = shown_metrics(summaries)
+    best = {m.key: best_labels(summaries, m) for m in metrics}
+    arrows = {"↑": r"$\uparrow$", "↓": r"$\downarrow$"}
+    lines = [r"\begin{tabular}{ll" + "r" * len(metrics) + "}", r"\toprule",
+             "method & seeds & " + " & ".join(f"{_tex(m.title)} {arrows[arrow(m)]}" for m in metrics)
+             + r" \\", r"\midrule"]
+    for s in summaries:
+        cells = []
+        for m in metrics:
+            mean, interval = cell_text(s.cells[m.key])
+            if s.label in best[m.key]:
+                mean = rf"\textbf{{{mean}}}"
+            cells.append(mean + (rf" {{\scriptsize {interval}}}" if interval else ""))
+        lines.append(f"{_tex(s.label)} & {_tex(s.row.seeds_text())} & " + " & ".join(cells)
+                     + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(lines) + "\n"
+
+
+_TEX = {"\\": r"\textbackslash{}", "_": r"\_", "%": r"\%", "&": r"\&", "#": r"\#", "$": r"\$",
+        "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}"}
+
+
+def _tex(text: str) -> str:
+    return "".join(_TEX.get(char, char) for char in text)

@@ -1,0 +1,88 @@
+"""Online EWC (Schwarz et al., 2018) with a per-sample empirical Fisher.
+
+    F <- gamma * F + mean_i (grad_theta l_i)^2        after stage 0 (foundation data) and each task
+    loss = mean(l) + lambda/2 * sum_j F_j (theta_j - theta*_j)^2,   theta* = weights after the task
+
+The Fisher diagonal is the mean of squared per-sample gradients (torch.func vmap), not the square
+of a batch gradient, which would underestimate it by the batch size's averaging.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch.func import functional_call, grad, vmap
+
+from methods import register_method
+from methods.base import Method, MethodConfig, TaskContext
+
+
+@dataclass
+class EWCConfig(MethodConfig):
+    strength: float = 1000.0  # lambda
+    decay: float = 0.9  # gamma: how much of the earlier Fisher survives each task
+    fisher_samples: int = 1024
+    fisher_batch: int = 128
+
+
+def per_sample_fisher(policy: torch.nn.Module, batch: dict, chunk: int = 128) -> dict[str, torch.Tensor]:
+    """Mean over the batch of squared per-sample gradients, parameter by parameter.
+
+    `batch` must fix "noise" and "time" so each sample's loss is a function of the weights only.
+    """
+    params = {n: p.detach() for n, p in policy.named_parameters() if p.requires_grad}
+    buffers = {n: b for n, b in policy.named_buffers()}
+
+    def sample_loss(p, sample):
+        one = {k: v.unsqueeze(0) for k, v in sample.items()}
+        return functional_call(policy, (p, buffers), (one,)).squeeze(0)
+
+    per_sample_grads = vmap(grad(sample_loss), in_dims=(None, 0))
+    n = next(iter(batch.values())).shape[0]
+    total = {k: torch.zeros_like(v) for k, v in params.items()}
+    for start in range(0, n, chunk):
+        part = {k: v[start:start + chunk] for k, v in batch.items()}
+        for k, g in per_sample_grads(params, part).items():
+            total[k] += (g ** 2).sum(0)
+    return {k: v / n for k, v in total.items()}
+
+
+@register_method
+class OnlineEWC(Method):
+    name = "ewc"
+    Config = EWCConfig
+
+    def __init__(self, config: EWCConfig | None = None):
+        super().__init__(config)
+        self.fisher: dict[str, torch.Tensor] | None = None
+        self.anchor: dict[str, torch.Tensor] | None = None
+
+    def after_task(self, ctx: TaskContext) -> None:
+        c = self.config
+        g = torch.Generator().manual_seed(2000 + ctx.stage)
+        idx = torch.randperm(len(ctx.data), generator=g)[: c.fisher_samples]
+        batch = {k: v for k, v in ctx.data.batch(idx).items()
+                 if k not in ("index", "task_index")}
+        batch["noise"] = torch.randn(batch["actions"].shape, generator=g)
+        batch["time"] = ctx.policy.sample_time(len(idx), g)
+        new = per_sample_fisher(ctx.policy, batch, c.fisher_batch)
+        if self.fisher is None:
+            self.fisher = new
+        else:
+            self.fisher = {k: c.decay * self.fisher[k] + new[k] for k in new}
+        self.anchor = {n: p.detach().clone() for n, p in ctx.policy.named_parameters()}
+
+    def penalty(self, policy: torch.nn.Module) -> torch.Tensor:
+        return sum((self.fisher[n] * (p - self.anchor[n]) ** 2).sum()
+                   for n, p in policy.named_parameters() if n in self.fisher)
+
+    def loss(self, per_sample, batch, policy):
+        penalty = self.penalty(policy)
+        return per_sample.mean() + 0.5 * self.config.strength * penalty, {"ewc/penalty": penalty.item()}
+
+    def state_dict(self):
+        return {"fisher": self.fisher, "anchor": self.anchor}
+
+    def load_state_dict(self, state):
+        self.fisher, self.anchor = state["fisher"], state["anchor"]
