@@ -15,7 +15,7 @@ export PYTHONUNBUFFERED := 1
 # Command-line variables (METHOD=..., steps_per_task=...) become overrides for the harness.
 OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v))))
 
-.PHONY: bench compare test lint ui venv clean-cache
+.PHONY: bench compare sweep report test lint ui venv clean-cache bench-train bench-methods bench-eval
 
 $(STAMP): requirements.lock pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -27,6 +27,31 @@ venv: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m harness bench $(OVERRIDES)
+
+REPORT_ARGS := $(filter EXPERIMENT=% BENCH=% PROFILE=% results_dir=% log_run=%,$(OVERRIDES))
+
+# every method on the same foundation, then the report: make compare BENCH=mw-quick SEEDS=3
+compare: $(STAMP)
+	$(PY) -m harness bench METHOD=all $(filter-out METHOD=%,$(OVERRIDES))
+	$(PY) -m harness.report $(REPORT_ARGS)
+
+# one run per grid point and seed, then the report: make sweep METHOD=consft GRID="kappa=0.1,1.0"
+sweep: $(STAMP)
+	$(PY) -m harness bench $(OVERRIDES)
+	$(PY) -m harness.report $(REPORT_ARGS)
+
+# tables and plots rebuilt from the MLflow store: make report [EXPERIMENT=mw-quick]
+report: $(STAMP)
+	$(PY) -m harness.report $(REPORT_ARGS)
+
+bench-train: $(STAMP)
+	$(PY) -m harness.perf train
+
+bench-methods: $(STAMP)
+	$(PY) -m harness.perf methods
+
+bench-eval: $(STAMP)
+	$(PY) -m harness.perf eval $(or $(WORKERS),2)
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests

@@ -36,9 +36,11 @@ def bootstrap_ci(values, level: float = 0.95, resamples: int = RESAMPLES,
                  seed: int = RNG_SEED) -> Interval:
     """Percentile bootstrap CI of the mean of `values`; NaNs are dropped first.
 
-    No values gives a NaN mean; one value gives that value with no interval.
+    No values gives a NaN mean; one value gives that value with no interval. The values are
+    sorted first, so the interval does not depend on the order the runs were read in.
     """
-    x = np.asarray([v for v in values if v is not None and not math.isnan(v)], dtype=np.float64)
+    x = np.sort(np.asarray([v for v in values if v is not None and not math.isnan(v)],
+                           dtype=np.float64))
     n = len(x)
     if n == 0:
         return Interval(float("nan"), None, None, 0)

@@ -6,22 +6,52 @@ profile, method, every override, every task name, and the tracking store.
 
 from __future__ import annotations
 
+import contextlib
+import copy
+import dataclasses
+import itertools
 import sys
 import time
 from dataclasses import dataclass
 
 import torch
 
-from harness.config import BenchConfig, resolve
+from harness.config import BenchConfig, resolve, set_field
 from harness.errors import RetainError
 from methods import Method, get_method, method_names
 from suites import UnknownName, get_suite
 
 
 @dataclass
+class Variant:
+    """One method at one point of a sweep: what a child run is."""
+
+    cfg: BenchConfig  # this run's resolved config (a sweep may change lr, say)
+    method: Method
+    point: str = ""  # "kappa=0.1 w_min=0.05", or "" outside a sweep
+
+    @property
+    def label(self) -> str:
+        """The run's name in tables and its directory under results/<benchmark>/."""
+        return f"{self.method.name}[{self.point}]" if self.point else self.method.name
+
+
+@dataclass
 class Plan:
     cfg: BenchConfig
-    methods: list[Method]
+    variants: list[Variant]
+
+
+def parse_grid(grid: str) -> list[dict[str, str]]:
+    """"kappa=0.1,0.25 w_min=0.05,0.2" -> the cartesian product, one dict per point."""
+    axes = []
+    for token in grid.replace(";", " ").split():
+        key, sep, values = token.partition("=")
+        items = [v for v in values.split(",") if v]
+        if not sep or not key or not items:
+            raise RetainError(f"malformed GRID entry {token!r}: expected key=v1,v2,...")
+        axes.append([(key, v) for v in items])
+    return [dict(point) for point in itertools.product(*axes)] if axes else [{}]
 
 
 def plan(args: list[str]) -> Plan:
@@ -48,22 +78,32 @@ def plan(args: list[str]) -> Plan:
         classes = [get_method(n) for n in names]
     except ValueError as exc:
         raise RetainError(str(exc)) from None
-    if len(classes) > 1:
-        for key in cfg.method_params:  # a setting must belong to at least one of the methods
+    bench_keys = {f.name for f in dataclasses.fields(BenchConfig)} - {"method_params", "grid"}
+    variants = []
+    for point in parse_grid(cfg.grid):
+        run_cfg = copy.deepcopy(cfg)
+        params = dict(cfg.method_params)
+        for key, value in point.items():
+            if key in bench_keys:
+                set_field(run_cfg, key, value)
+            else:
+                params[key] = value
+        for key in params:  # a setting must belong to at least one of the methods
             if not any(key in c.Config.__dataclass_fields__ for c in classes):
-                make_method(classes[0], {key: cfg.method_params[key]})
-        methods = [make_method(c, {k: v for k, v in cfg.method_params.items()
-                                   if k in c.Config.__dataclass_fields__}) for c in classes]
-    else:
-        methods = [make_method(classes[0], cfg.method_params)]
-    return Plan(cfg, methods)
+                make_method(classes[0], {key: params[key]})
+        label = " ".join(f"{k}={v}" for k, v in point.items())
+        for cls in classes:
+            own = {k: v for k, v in params.items() if k in cls.Config.__dataclass_fields__}
+            variants.append(Variant(run_cfg, make_method(cls, own), label))
+    return Plan(cfg, variants)
 
 
 def bench(args: list[str]) -> int:
     from harness.data import prepare_data
+    from harness.evaluation import Evaluator
     from harness.foundation import load_or_train_foundation
     from harness.reports import summary_table, write_run_outputs
-    from harness.runner import run_stream
+    from harness.stages import eval_settings
     from harness.tracking import Tracker, git_commit, package_versions
 
     p = plan(args)
@@ -78,26 +118,29 @@ def bench(args: list[str]) -> int:
                                 **{f"version.{k}": v for k, v in provenance["versions"].items()}})
     start = time.time()
     status = "FAILED"
+    stack = contextlib.ExitStack()
     try:
         suite = get_suite(cfg.suite)
         print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
-              f"{len(cfg.stream_tasks)} stream tasks, methods {[m.name for m in p.methods]}, "
+              f"{len(cfg.stream_tasks)} stream tasks, runs {[v.label for v in p.variants]}, "
               f"seeds {cfg.seed_list()}", flush=True)
         data = prepare_data(cfg, suite)
         print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
         results = []
+        evaluator = stack.enter_context(
+            Evaluator(suite, eval_settings(cfg), cfg.workers(), cfg.torch_threads))
         for seed in cfg.seed_list():
             foundation = load_or_train_foundation(
-                cfg, suite, data, seed,
+                cfg, suite, data, seed, evaluator,
                 log=_batched_logger(tracker, parent, prefix=f"foundation_seed{seed}/"))
             print(f"[retain] seed {seed}: foundation ready, stage-0 foundation success "
                   f"{_foundation_success(cfg, foundation.stage0):.3f} ({time.time() - start:.0f}s)",
                   flush=True)
-            for method in p.methods:
-                results.append(_run_one(cfg, suite, data, foundation, method, seed, tracker,
-                                        parent, provenance, write_run_outputs))
+            for variant in p.variants:
+                results.append(_run_one(variant, suite, data, foundation, seed, evaluator,
+                                        tracker, parent, provenance, write_run_outputs))
                 r = results[-1]
-                print(f"[retain] {method.name} seed {seed}: foundation success "
+                print(f"[retain] {variant.label} seed {seed}: foundation success "
                       f"{r.metrics['foundation_success_stage0']:.3f} -> {r.metrics['retention']:.3f}, "
                       f"plasticity {r.metrics['plasticity']:.3f} ({time.time() - start:.0f}s)",
                       flush=True)
@@ -109,6 +152,7 @@ def bench(args: list[str]) -> int:
         status = "FINISHED"
         return 0
     finally:
+        stack.close()
         tracker.end_run(parent, status)
 
 
@@ -134,11 +178,15 @@ class _batched_logger:
             self.rows = []
 
 
-def _run_one(cfg, suite, data, foundation, method, seed, tracker, parent, provenance, write_outputs):
+def _run_one(variant: Variant, suite, data, foundation, seed, evaluator, tracker, parent,
+             provenance, write_outputs):
     from harness.runner import run_stream
 
-    child = tracker.start_run(f"{method.name}/seed{seed}", parent_id=parent,
-                              tags={"method": method.name, "seed": str(seed), "benchmark": cfg.name})
+    cfg, method = variant.cfg, variant.method
+    tags = {"method": method.name, "seed": str(seed), "benchmark": cfg.name, "label": variant.label}
+    if variant.point:
+        tags["sweep_point"] = variant.point
+    child = tracker.start_run(f"{variant.label}/seed{seed}", parent_id=parent, tags=tags)
     tracker.log_params(child, {**{f"config.{k}": v for k, v in cfg.as_dict().items()},
                                **{f"method.{k}": v for k, v in method.hyperparameters().items()},
                                "method": method.name, "seed": seed,
@@ -150,11 +198,14 @@ def _run_one(cfg, suite, data, foundation, method, seed, tracker, parent, proven
         stage_rows = [(0, _stage_metrics(cfg, foundation.stage0))]
 
         def on_stage(record):
+            print(f"[retain] {variant.label} seed {seed}: stage {record.stage} ({record.task}) done, "
+                  f"foundation success {_foundation_success(cfg, record):.3f}", flush=True)
             logger.flush()
             tracker.log_metric_rows(child, [(record.stage, _stage_metrics(cfg, record))])
 
         tracker.log_metric_rows(child, stage_rows)
-        result = run_stream(cfg, suite, data, foundation, method, seed, logger, on_stage)
+        result = run_stream(cfg, suite, data, foundation, method, seed, evaluator, logger, on_stage,
+                            label=variant.label)
         logger.flush()
         tracker.log_metrics(child, result.metrics, step=len(cfg.stream_tasks))
         paths = write_outputs(cfg, result, provenance)

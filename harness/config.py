@@ -8,6 +8,7 @@ or a hyperparameter of the method; a key that is neither is an error naming the 
 from __future__ import annotations
 
 import dataclasses
+import os
 import types
 import typing
 from dataclasses import dataclass, field, fields
@@ -21,7 +22,6 @@ from harness.errors import RetainError
 BENCHMARK_DIR = Path(__file__).parent / "benchmarks"
 PROFILE_BENCHMARKS = {"quick": "mw-quick", "standard": "mw-standard", "tiny": "mw-quick",
                       "paper": "mw-standard"}
-UPPER_KEYS = {"METHOD", "BENCH", "PROFILE", "SEED", "SEEDS"}
 
 
 @dataclass
@@ -50,10 +50,16 @@ class BenchConfig:
     seeds: int = 1  # number of seeds: seed, seed + 1, ...
     method: str = "sft"
     method_params: dict[str, Any] = field(default_factory=dict)
+    grid: str = ""  # a sweep: "kappa=0.1,0.25 w_min=0.05,0.2", one run per point and seed
+    foundation_lr: float = 3e-4  # kept apart from lr, so a sweep of lr shares one foundation
     results_dir: str = "results"
     cache_dir: str = "cache"
     progress: bool = True
-    torch_threads: int = 1  # intra-op threads; small CPU batches are slower with more
+    torch_threads: int = 1  # intra-op threads per process; small CPU batches are slower with more
+    eval_workers: int = 0  # evaluation processes; 0 means one per core
+
+    def workers(self) -> int:
+        return self.eval_workers if self.eval_workers > 0 else (os.cpu_count() or 1)
 
     def seed_list(self) -> list[int]:
         return list(range(self.seed, self.seed + self.seeds))
@@ -174,11 +180,11 @@ def resolve(args: list[str]) -> BenchConfig:
         apply_profile(cfg, profile)
     else:
         cfg.profile = profile
-    for upper, lower in (("METHOD", "method"), ("SEED", "seed"), ("SEEDS", "seeds")):
+    for upper, lower in (("METHOD", "method"), ("SEED", "seed"), ("SEEDS", "seeds"), ("GRID", "grid")):
         if overrides.get(upper, "") != "":
             set_field(cfg, lower, overrides.pop(upper))
         overrides.pop(upper, None)
-    bench_keys = {f.name for f in fields(BenchConfig)} - {"method_params"}
+    bench_keys = {f.name for f in fields(BenchConfig)} - {"method_params", "grid"}
     for key, value in overrides.items():
         if key in bench_keys:
             set_field(cfg, key, value)

@@ -9,7 +9,7 @@ import numpy as np
 
 from harness.config import BenchConfig
 from harness.datasets import TrainingData, chunk_episodes
-from harness.demos import DemoSpec, load_or_generate
+from harness.demos import DemoSpec, Episode, load_or_generate
 from policies.text_encoder import embed_instructions
 from suites import Suite
 
@@ -42,3 +42,17 @@ def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
             episodes = load_or_generate(suite, demo_spec(cfg, suite, task, split), cache, cfg.progress)
             target[task] = chunk_episodes(episodes, task, embedding, cfg.chunk_size)
     return data
+
+
+def libero_training_data(path: str | Path, chunk_size: int, cache_dir: Path | None = None) -> TrainingData:
+    """One task's training samples from a real LIBERO HDF5 file.
+
+    The state is LIBERO's own proprioception (ee_states + gripper_states), so these samples train
+    policies meant for real LIBERO; evaluating them there needs the optional `libero` extra.
+    """
+    from suites.robosuite_libero.libero_files import read_libero_file
+
+    task = read_libero_file(path)
+    episodes = [Episode(e["actions"], e["obs"], seed=-1) for e in task.episodes]
+    embedding = embed_instructions([task.instruction], cache_dir)[0]
+    return chunk_episodes(episodes, Path(path).stem, embedding, chunk_size)

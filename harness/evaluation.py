@@ -1,21 +1,24 @@
-"""Closed-loop evaluation: roll the policy out on each task's fixed, seeded evaluation episodes.
+"""Closed-loop evaluation: roll the policy out on every task's fixed, seeded evaluation episodes.
 
-All episodes of a task run in lockstep, so the policy predicts one batch of action chunks for
-every episode that needs a new chunk. The sampling noise of each episode comes from its own
-generator (seeded by the episode), so a result does not depend on how episodes are batched or
-split across workers.
+Episodes run in lockstep, so the policy predicts one batch of action chunks for all episodes
+that need a new chunk (across tasks: the instruction is per row). Each episode's sampling noise
+comes from its own generator, seeded by the episode, so results do not depend on how episodes
+are batched or split across worker processes.
 """
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing import get_context
 
 import numpy as np
 import torch
 
 from harness.datasets import TrainingData
 from harness.seeding import generator
-from suites import Suite, episode_seeds
+from suites import Suite, episode_seeds, get_suite
 
 
 @dataclass(frozen=True)
@@ -25,6 +28,12 @@ class EvalSettings:
     n_action_steps: int
     cameras: bool = False
     image_size: int = 84
+
+
+@dataclass(frozen=True)
+class EvalEpisode:
+    task: str
+    seed: int
 
 
 @dataclass(frozen=True)
@@ -38,48 +47,142 @@ class TaskEvaluation:
         return float(np.mean(self.successes)) if self.successes else float("nan")
 
 
-def evaluate_task(
-    policy, suite: Suite, task: str, instruction: np.ndarray, settings: EvalSettings,
-    noise_seed: int, seeds: list[int] | None = None, envs: list | None = None,
-) -> TaskEvaluation:
-    """Success of `policy` on the task's evaluation episodes (or on `seeds` if given)."""
-    seeds = seeds if seeds is not None else episode_seeds(suite.name, task, "eval", settings.episodes)
-    own_envs = envs is None
-    if own_envs:
-        envs = [suite.make_env(task, settings.cameras, settings.image_size) for _ in seeds]
+class EnvCache:
+    """Simulators reused across stages: building one can take longer than an episode."""
+
+    def __init__(self, suite: Suite, settings: EvalSettings):
+        self.suite, self.settings = suite, settings
+        self.envs: dict[str, list] = {}
+
+    def take(self, episodes: list[EvalEpisode]) -> list:
+        used: dict[str, int] = {}
+        out = []
+        for ep in episodes:
+            pool = self.envs.setdefault(ep.task, [])
+            i = used.get(ep.task, 0)
+            if i == len(pool):
+                pool.append(self.suite.make_env(ep.task, self.settings.cameras, self.settings.image_size))
+            out.append(pool[i])
+            used[ep.task] = i + 1
+        return out
+
+    def close(self) -> None:
+        for pool in self.envs.values():
+            for env in pool:
+                env.close()
+        self.envs.clear()
+
+
+@torch.no_grad()
+def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
+            settings: EvalSettings, noise_seed: int, envs: EnvCache) -> list[tuple[bool, int]]:
+    """(success, steps) per episode, all episodes stepped in lockstep."""
     policy.eval()
+    n = len(episodes)
     chunk_size, action_dim = policy.config.chunk_size, policy.config.action_dim
-    obs = [env.reset(seed) for env, seed in zip(envs, seeds)]
-    generators = [generator("eval-noise", noise_seed, seed) for seed in seeds]
-    instruction_t = torch.as_tensor(instruction, dtype=torch.float32)
-    done = [False] * len(seeds)
-    success = [False] * len(seeds)
-    plans: list[np.ndarray | None] = [None] * len(seeds)
-    env_steps = 0
+    sims = envs.take(episodes)
+    obs = [env.reset(ep.seed) for env, ep in zip(sims, episodes)]
+    generators = [generator("eval-noise", noise_seed, ep.task, ep.seed) for ep in episodes]
+    rows = torch.as_tensor(np.stack([instructions[ep.task] for ep in episodes]), dtype=torch.float32)
+    done, success, steps = [False] * n, [False] * n, [0] * n
+    plans: list[np.ndarray | None] = [None] * n
     for t in range(settings.max_episode_steps):
         if t % settings.n_action_steps == 0:
-            live = [i for i in range(len(seeds)) if not done[i]]
+            live = [i for i in range(n) if not done[i]]
             if not live:
                 break
             batch = {k: torch.as_tensor(np.stack([obs[i][k] for i in live])) for k in obs[live[0]]}
-            batch["instruction"] = instruction_t.expand(len(live), -1)
+            batch["instruction"] = rows[live]
             noise = torch.stack([torch.randn(chunk_size, action_dim, generator=generators[i])
                                  for i in live])
             chunks = policy.sample_actions(batch, noise=noise).numpy()
             for j, i in enumerate(live):
                 plans[i] = chunks[j]
-        for i, env in enumerate(envs):
+        for i, env in enumerate(sims):
             if done[i]:
                 continue
             result = env.step(plans[i][t % settings.n_action_steps])
-            env_steps += 1
+            steps[i] += 1
             obs[i] = result.obs
             if result.success:
                 success[i] = done[i] = True
-    if own_envs:
-        for env in envs:
-            env.close()
-    return TaskEvaluation(task, tuple(success), env_steps)
+    return list(zip(success, steps))
+
+
+def evaluation_episodes(suite_name: str, tasks: list[str], n: int) -> list[EvalEpisode]:
+    return [EvalEpisode(t, s) for t in tasks for s in episode_seeds(suite_name, t, "eval", n)]
+
+
+def group_by_task(episodes: list[EvalEpisode], outcomes: list[tuple[bool, int]]
+                  ) -> dict[str, TaskEvaluation]:
+    by_task: dict[str, list[tuple[bool, int]]] = {}
+    for ep, out in zip(episodes, outcomes):
+        by_task.setdefault(ep.task, []).append(out)
+    return {t: TaskEvaluation(t, tuple(s for s, _ in v), sum(n for _, n in v)) for t, v in by_task.items()}
+
+
+class Evaluator:
+    """Evaluates a policy on a benchmark's tasks, in this process or in `workers` processes.
+
+    Workers are started once and keep their simulators between stages; each receives the
+    policy's weights and an interleaved share of the episodes.
+    """
+
+    def __init__(self, suite: Suite, settings: EvalSettings, workers: int = 1, torch_threads: int = 1):
+        self.suite, self.settings, self.workers = suite, settings, max(1, workers)
+        self._local = EnvCache(suite, settings) if self.workers == 1 else None
+        self._pool = None
+        if self.workers > 1:
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"),
+                                             initializer=_init_worker,
+                                             initargs=(suite.name, settings, torch_threads))
+
+    def evaluate(self, policy, tasks: list[str], instructions: dict[str, np.ndarray],
+                 noise_seed: int) -> dict[str, TaskEvaluation]:
+        episodes = evaluation_episodes(self.suite.name, tasks, self.settings.episodes)
+        if self._pool is None:
+            outcomes = rollout(policy, episodes, instructions, self.settings, noise_seed, self._local)
+            return group_by_task(episodes, outcomes)
+        shares = [episodes[i::self.workers] for i in range(self.workers)]
+        weights = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+        futures = [self._pool.submit(_worker_rollout, policy.config, weights, share, instructions,
+                                     noise_seed) for share in shares if share]
+        outcomes: dict[EvalEpisode, tuple[bool, int]] = {}
+        for share, future in zip([s for s in shares if s], futures):
+            outcomes.update(zip(share, future.result()))
+        return group_by_task(episodes, [outcomes[ep] for ep in episodes])
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+        if self._local is not None:
+            self._local.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(suite_name: str, settings: EvalSettings, torch_threads: int) -> None:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    torch.set_num_threads(torch_threads)
+    _WORKER["envs"] = EnvCache(get_suite(suite_name), settings)
+    _WORKER["settings"] = settings
+
+
+def _worker_rollout(config, weights, episodes, instructions, noise_seed):
+    from policies import FlowMatchingPolicy
+
+    if _WORKER.get("config") != config:
+        _WORKER["policy"], _WORKER["config"] = FlowMatchingPolicy(config), config
+    policy = _WORKER["policy"]
+    policy.load_state_dict(weights)
+    return rollout(policy, episodes, instructions, _WORKER["settings"], noise_seed, _WORKER["envs"])
 
 
 @torch.no_grad()

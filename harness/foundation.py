@@ -12,11 +12,13 @@ import torch
 
 from harness.config import BenchConfig
 from harness.data import BenchmarkData, demo_spec
+from harness.evaluation import Evaluator
 from harness.seeding import derive_seed, generator
 from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
 from harness.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
 from policies import FlowMatchingConfig, FlowMatchingPolicy
+from policies.flow_matching.modeling import ARCHITECTURE_VERSION
 from suites import Suite
 
 FOUNDATION_VERSION = 1  # bump when the training code changes what a cached checkpoint holds
@@ -48,9 +50,10 @@ def _hash(obj) -> str:
 
 def foundation_key(cfg: BenchConfig, suite: Suite, seed: int) -> str:
     return _hash({
-        "version": FOUNDATION_VERSION, "seed": seed, "policy": policy_config(cfg, suite).__dict__,
+        "version": [FOUNDATION_VERSION, ARCHITECTURE_VERSION], "seed": seed, "policy": policy_config(cfg, suite).__dict__,
         "demos": [demo_spec(cfg, suite, t, "demo").key() for t in cfg.foundation_tasks],
-        "train": [cfg.foundation_steps, cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.grad_clip],
+        "train": [cfg.foundation_steps, cfg.batch_size, cfg.foundation_lr, cfg.weight_decay,
+                  cfg.grad_clip],
     })
 
 
@@ -61,7 +64,7 @@ def stage0_key(cfg: BenchConfig, suite: Suite) -> str:
 
 
 def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData, seed: int,
-                             log=None) -> Foundation:
+                             evaluator: Evaluator, log=None) -> Foundation:
     key = foundation_key(cfg, suite, seed)
     directory = Path(cfg.cache_dir) / "foundation" / key
     weights, stage0_path = directory / "policy.pt", directory / f"stage0-{stage0_key(cfg, suite)}.pt"
@@ -77,8 +80,8 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
         torch.manual_seed(derive_seed(seed, "foundation"))
         ctx = TaskContext(stage=0, task="foundation", data=train, policy=policy,
                           foundation_loss=float("nan"), steps=cfg.foundation_steps)
-        settings = TrainSettings(cfg.foundation_steps, cfg.batch_size, cfg.lr, cfg.weight_decay,
-                                 cfg.grad_clip)
+        settings = TrainSettings(cfg.foundation_steps, cfg.batch_size, cfg.foundation_lr,
+                                 cfg.weight_decay, cfg.grad_clip)
         result = train_stage(ctx, Method(), settings, generator(seed, "foundation"), log)
         final_loss = result.final_loss
         save_checkpoint(weights, {"policy": policy.state_dict(), "final_loss": final_loss,
@@ -86,7 +89,7 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
     if stage0_path.exists():
         stage0 = StageRecord(**load_checkpoint(stage0_path))
     else:
-        stage0 = evaluate_stage(policy, suite, cfg, data, seed, 0, "foundation")
+        stage0 = evaluate_stage(policy, evaluator, cfg, data, seed, 0, "foundation")
         stage0.train_loss = final_loss
         save_checkpoint(stage0_path, stage0.as_dict())
     return Foundation(key, policy.state_dict(), final_loss, stage0)

@@ -15,6 +15,7 @@ import torch
 from harness.config import BenchConfig, set_field
 from harness.data import BenchmarkData
 from harness.errors import RetainError
+from harness.evaluation import Evaluator
 from harness.foundation import Foundation, build_policy
 from harness.metrics import CoreMetrics, core_metrics, offline_retention
 from harness.seeding import derive_seed, generator
@@ -60,18 +61,20 @@ def make_method(cls: type[Method], params: dict) -> Method:
         raise RetainError(str(exc).splitlines()[0]) from None
 
 
-def run_dir(cfg: BenchConfig, method: Method, seed: int) -> Path:
-    return Path(cfg.results_dir) / cfg.name / method.name / f"seed{seed}"
+def run_dir(cfg: BenchConfig, label: str, seed: int) -> Path:
+    return Path(cfg.results_dir) / cfg.name / label.replace(" ", "_") / f"seed{seed}"
 
 
 def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: Foundation,
-               method: Method, seed: int, log_step=None, on_stage=None) -> RunResult:
+               method: Method, seed: int, evaluator: Evaluator, log_step=None, on_stage=None,
+               label: str | None = None) -> RunResult:
     """Stages 1..k for one method and seed, resuming from checkpoints in the run directory.
 
     `log_step(global_step, metrics)` receives training metrics; `on_stage(record)` each new
     stage's record (both for tracking).
     """
-    out = run_dir(cfg, method, seed)
+    label = label or method.name
+    out = run_dir(cfg, label, seed)
     checkpoints = out / "stages"
     policy = build_policy(cfg, suite)
     policy.load_state_dict(foundation.policy_state)
@@ -107,7 +110,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
 
         result = train_stage(context(stage, task, data.train[task]), method, settings,
                              generator(seed, "stage", stage), log)
-        record = evaluate_stage(policy, suite, cfg, data, seed, stage, task)
+        record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, task)
         record.train_loss = result.final_loss
         current = policy.state_dict()
         record.updates, layer_rows = update_stats(theta0, current)
@@ -122,7 +125,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     if not layer_rows:
         _, layer_rows = update_stats(theta0, policy.state_dict())
     tasks = cfg.foundation_tasks + cfg.stream_tasks
-    result = RunResult(method.name, seed, out, stages, {}, tasks, layer_rows)
+    result = RunResult(label, seed, out, stages, {}, tasks, layer_rows)
     result.metrics = summary_metrics(cfg, result)
     return result
 

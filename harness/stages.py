@@ -10,9 +10,8 @@ import torch
 from harness.atomic import atomic_path
 from harness.config import BenchConfig
 from harness.data import BenchmarkData
-from harness.evaluation import EvalSettings, evaluate_task, heldout_loss
+from harness.evaluation import EvalSettings, Evaluator, heldout_loss
 from harness.seeding import derive_seed
-from suites import Suite
 
 
 @dataclass
@@ -37,19 +36,18 @@ def eval_settings(cfg: BenchConfig) -> EvalSettings:
                         image_size=cfg.image_size)
 
 
-def evaluate_stage(policy, suite: Suite, cfg: BenchConfig, data: BenchmarkData, seed: int,
+def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: BenchmarkData, seed: int,
                    stage: int, task: str) -> StageRecord:
     """Roll out every task (foundation and stream) and measure every held-out loss."""
-    settings = eval_settings(cfg)
-    success, episodes, held, steps = {}, {}, {}, 0
-    for name in cfg.foundation_tasks + cfg.stream_tasks:
-        result = evaluate_task(policy, suite, name, data.instructions[name], settings,
-                               noise_seed=derive_seed(seed, "eval"))
-        success[name] = result.success_rate
-        episodes[name] = list(result.successes)
-        steps += result.steps
-        held[name] = heldout_loss(policy, data.heldout[name], derive_seed("heldout", name))
-    return StageRecord(stage, task, success, episodes, held, env_steps=steps)
+    tasks = cfg.foundation_tasks + cfg.stream_tasks
+    results = evaluator.evaluate(policy, tasks, data.instructions, noise_seed=derive_seed(seed, "eval"))
+    return StageRecord(
+        stage, task,
+        success={t: results[t].success_rate for t in tasks},
+        episodes={t: list(results[t].successes) for t in tasks},
+        heldout_loss={t: heldout_loss(policy, data.heldout[t], derive_seed("heldout", t)) for t in tasks},
+        env_steps=sum(results[t].steps for t in tasks),
+    )
 
 
 def save_checkpoint(path: Path, payload: dict) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -30,9 +31,27 @@ class TrainResult:
 StepLogger = Callable[[int, dict[str, float]], None]
 
 
+class PhaseTimer:
+    """Wall time per phase of the training step, for `make bench-train`."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def mark(self, phase: str) -> None:
+        now = time.perf_counter()
+        self.seconds[phase] = self.seconds.get(phase, 0.0) + now - self._last
+        self._last = now
+
+
+class _NoTimer:
+    def mark(self, phase: str) -> None:
+        pass
+
+
 def train_stage(
     ctx: TaskContext, method: Method, settings: TrainSettings, generator: torch.Generator,
-    log: StepLogger | None = None,
+    log: StepLogger | None = None, timer: PhaseTimer | None = None,
 ) -> TrainResult:
     """Fine-tune `ctx.policy` on `ctx.data` for `settings.steps` steps with `method`.
 
@@ -46,10 +65,14 @@ def train_stage(
     optimizer = torch.optim.AdamW(params, lr=settings.lr, weight_decay=settings.weight_decay)
     tail = max(1, settings.steps // 10)
     tail_losses: list[float] = []
+    timer = timer if timer is not None else _NoTimer()
     for step in range(settings.steps):
+        timer.mark("other")
         batch = method.sample_batch(ctx, settings.batch_size, generator)
+        timer.mark("data")
         per_sample = policy(batch, generator=generator)
         loss, stats = method.loss(per_sample, batch, policy)
+        timer.mark("forward")
         if not torch.isfinite(loss):
             raise NonFiniteLoss(
                 f"non-finite loss ({loss.item()}) in method {method.name!r} at stage {ctx.stage} "
@@ -57,10 +80,12 @@ def train_stage(
             )
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        timer.mark("backward")
         if settings.grad_clip > 0:
             torch.nn.utils.clip_grad_norm_(params, settings.grad_clip)
         optimizer.step()
         method.after_step(policy)
+        timer.mark("optimizer")
         mean_loss = per_sample.detach().mean().item()
         if step >= settings.steps - tail:
             tail_losses.append(mean_loss)

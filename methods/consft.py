@@ -108,10 +108,10 @@ class ConSFT(Method):
 
     def weights(self, per_sample: torch.Tensor) -> torch.Tensor:
         """sg(w_i) for the clip and dft variants."""
-        l = per_sample.detach()
+        losses = per_sample.detach()
         if self.config.variant == "clip":
-            return torch.exp(-(l - self.l_ref) / self.tau).clamp(self.config.w_min, 1.0)
-        return torch.exp(-l / self.tau)
+            return torch.exp(-(losses - self.l_ref) / self.tau).clamp(self.config.w_min, 1.0)
+        return torch.exp(-losses / self.tau)
 
     def loss(self, per_sample, batch, policy):
         c = self.config

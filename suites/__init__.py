@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
-from suites.base import Suite, TaskEnv, StepResult, Observation, episode_seeds, unknown, UnknownName
+from suites.base import Observation, StepResult, Suite, TaskEnv, UnknownName, episode_seeds, unknown
 
 _SUITES: dict[str, str] = {
     # name -> module that defines and registers it; imported lazily (simulators are slow to load)

@@ -45,9 +45,9 @@ def test_consft_scales_a_high_loss_samples_gradient_by_its_weight(tiny_policy):
     per_sample = tiny_policy(batch)
     loss, stats = method.loss(per_sample, batch, tiny_policy)
     consft_grad = _param_grads(tiny_policy, loss)
-    l = per_sample.item()
-    expected = min(1.0, max(0.01, math.exp(-(l - 0.8) / (0.5 * 0.8))))
-    assert l > 0.8 and expected < 0.5
+    value = per_sample.item()
+    expected = min(1.0, max(0.01, math.exp(-(value - 0.8) / (0.5 * 0.8))))
+    assert value > 0.8 and expected < 0.5
     assert torch.allclose(consft_grad, expected * sft_grad, rtol=1e-4, atol=1e-9)
     assert stats["consft/weight_mean"] == pytest.approx(expected)
 

@@ -4,8 +4,15 @@ import numpy as np
 import pytest
 import torch
 
-from harness.metrics import (backward_transfer, core_metrics, forgetting, foundation_success,
-                             offline_retention, plasticity, stream_final_success)
+from harness.metrics import (
+    backward_transfer,
+    core_metrics,
+    forgetting,
+    foundation_success,
+    offline_retention,
+    plasticity,
+    stream_final_success,
+)
 from harness.updates import hoyer_sparsity, update_stats
 
 # columns: F1, F2, s1, s2, s3; rows: stages 0..3

@@ -6,6 +6,7 @@ computed once.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -119,7 +120,7 @@ def _update_histogram(runs: list[RunRecord]) -> UpdateHistogram | None:
     if not per_run:
         return None
     names = [f"<= {rhos[0]:g}"]
-    names += [f"{lo:g} - {hi:g}" for lo, hi in zip(rhos, rhos[1:])]
+    names += [f"{lo:g} - {hi:g}" for lo, hi in itertools.pairwise(rhos)]
     names.append(f"> {rhos[-1]:g}")
     return UpdateHistogram(names, np.mean(per_run, axis=0))
 

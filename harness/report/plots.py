@@ -43,8 +43,10 @@ def success_heatmap(path: Path, s: RowSummary, benchmark: str) -> None:
     n_f = len(s.foundation_tasks)
     fig = Figure(figsize=(2.2 + 0.62 * len(tasks), 1.6 + 0.5 * len(R)))
     ax = fig.add_subplot()
-    im = ax.imshow(np.ma.masked_invalid(R), vmin=0, vmax=1, cmap="viridis", aspect="auto")
-    im.cmap.set_bad("lightgrey")
+    from matplotlib import colormaps
+
+    cmap = colormaps["viridis"].with_extremes(bad="lightgrey")  # grey: never evaluated
+    im = ax.imshow(np.ma.masked_invalid(R), vmin=0, vmax=1, cmap=cmap, aspect="auto")
     for (i, j), v in np.ndenumerate(R):
         ax.text(j, i, "n/a" if np.isnan(v) else f"{v:.2f}", ha="center", va="center", fontsize=8,
                 color="white" if np.isnan(v) or v < 0.6 else "black")
@@ -112,8 +114,11 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
     if frontier:
         ax.plot([p[0] for p in frontier], [p[1] for p in frontier], "--", color="black",
                 linewidth=1.2, label="SFT learning-rate sweep: the frontier to beat", zorder=0)
-    ax.set_xlim(-0.02, 1.02)
-    ax.set_ylim(-0.02, 1.02)
+    points = [(s.cells["plasticity"], s.cells["retention"]) for s in summaries]
+    xs = [v for x, _ in points if x.n for v in (x.mean, x.low, x.high) if v is not None]
+    ys = [v for _, y in points if y.n for v in (y.mean, y.low, y.high) if v is not None]
+    ax.set_xlim(*_zoom(xs))
+    ax.set_ylim(*_zoom(ys))
     ax.set_xlabel("plasticity (mean success on each stream task right after its stage)")
     ax.set_ylabel("retention (foundation success after the last stage)")
     ax.set_title(f"{benchmark}: plasticity vs retention (up and right is better)", fontsize=10)
@@ -121,6 +126,13 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
     ax.legend(fontsize=8, loc="lower left")
     fig.tight_layout()
     save(fig, path)
+
+
+def _zoom(values: list[float]) -> tuple[float, float]:
+    """Axis limits around the points (0.1 margin) inside [0, 1]: clusters stay readable."""
+    if not values:
+        return -0.02, 1.02
+    return max(-0.02, min(values) - 0.1), min(1.02, max(values) + 0.1)
 
 
 def sft_frontier(summaries: list[RowSummary]) -> list[tuple[float, float]]:
@@ -150,7 +162,8 @@ def update_distribution(path: Path, summaries: list[RowSummary], benchmark: str)
         for i, s in enumerate(rows):
             x = np.arange(len(bins)) + (i - (len(rows) - 1) / 2) * width
             bars = ax.bar(x, s.updates.fractions, width, color=color[s.label], label=s.label)
-            ax.bar_label(bars, [f"{v:.0%}" for v in s.updates.fractions], fontsize=7)
+            if len(rows) <= 4:  # beyond that the labels run into each other
+                ax.bar_label(bars, [f"{v:.0%}" for v in s.updates.fractions], fontsize=7)
         ax.set_xticks(range(len(bins)), bins)
         ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     ax.set_ylim(0, 1.08)
@@ -163,27 +176,29 @@ def update_distribution(path: Path, summaries: list[RowSummary], benchmark: str)
 
 
 def layer_relative_l2(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
-    """Horizontal grouped bars: per layer, ||theta_k - theta_0|| / ||theta_0||, one bar per row."""
+    """Horizontal grouped bars: per layer, ||theta_k - theta_0|| / ||theta_0||, one bar per row.
+
+    The axis turns logarithmic when layers differ by more than 20x, so small layers stay visible.
+    """
     rows = [s for s in summaries if s.layer_relative_l2]
     layers = list(dict.fromkeys(name for s in rows for name in s.layer_relative_l2))
     height = 0.8 / max(len(rows), 1)
-    fig = Figure(figsize=(9, 1.6 + len(layers) * max(0.28, 0.13 * len(rows))))
+    fig = Figure(figsize=(9, 1.5 + len(layers) * max(0.25, 0.1 * len(rows))))
     ax = fig.add_subplot()
     color = colors(summaries)
     for i, s in enumerate(rows):
         y = np.arange(len(layers)) + (i - (len(rows) - 1) / 2) * height
         ax.barh(y, [s.layer_relative_l2.get(name, 0.0) for name in layers], height,
                 color=color[s.label], label=s.label)
-    values = [v for s in rows for v in s.layer_relative_l2.values()]
-    if values and min(values) > 0:
+    values = [v for s in rows for v in s.layer_relative_l2.values() if v > 0]
+    if values and max(values) > 20 * min(values):
         ax.set_xscale("log")
-    ax.set_yticks(range(len(layers)), layers, fontsize=7)
-    ax.invert_yaxis()  # first layer on top
-    ax.set_xlabel("relative L2 of the update, ||theta_k - theta_0|| / ||theta_0|| (mean over seeds)")
-    ax.set_title(f"{benchmark}: update size per layer", fontsize=10)
+    ax.set_yticks(range(len(layers)), layers, fontsize=8)
+    ax.set_ylim(len(layers) - 0.5, -0.5)  # first layer on top
+    ax.set_xlabel("||theta_k - theta_0|| / ||theta_0|| of the layer (mean over seeds)")
+    ax.set_title(f"{benchmark}: update size per layer (relative L2)", fontsize=10)
     ax.grid(axis="x", alpha=0.3)
     if rows:
-        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.08 - 1.0 / max(len(layers), 1)),
-                  ncol=min(len(rows), 4))
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     save(fig, path)

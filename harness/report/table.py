@@ -18,10 +18,11 @@ DIGITS = 3
 
 
 def best_labels(summaries: list[RowSummary], metric: Metric) -> set[str]:
-    """Labels of the rows with the best printed mean in this column (none if no row has data)."""
+    """Labels of the rows with the best printed mean in this column; none when every row prints
+    the same value (nothing to single out) or no row has data."""
     values = {s.label: round(s.cells[metric.key].mean, DIGITS) for s in summaries
               if s.cells[metric.key].n}
-    if not values:
+    if len(set(values.values())) < 2:
         return set()
     best = max(values.values()) if metric.higher_is_better else min(values.values())
     return {label for label, v in values.items() if v == best}
@@ -83,7 +84,7 @@ def csv_table(summaries: list[RowSummary]) -> str:
 
 
 def _full(v: float | None) -> str:
-    return "" if v is None or math.isnan(v) else repr(float(v))
+    return "" if v is None or math.isnan(v) else format(float(v), ".10g")
 
 
 def latex_table(summaries: list[RowSummary]) -> str:

@@ -17,6 +17,7 @@ from torch import nn
 from policies.flow_matching.configuration import FlowMatchingConfig
 from policies.normalization import Normalizer
 
+ARCHITECTURE_VERSION = 2  # part of the foundation cache key: bump when the network changes
 STATE_STD_FLOOR, STATE_CLIP = 1e-2, 5.0
 ACTION_STD_FLOOR, ACTION_CLIP = 5e-2, 5.0
 

@@ -1,0 +1,209 @@
+"""Speed and memory figures (`make bench-train`, `make bench-methods`, `make bench-eval`).
+
+Targets are printed beside the measurements; nothing here asserts, so a slow machine gives
+slow figures, not a failing test.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+
+import torch
+
+from harness.datasets import TrainingData
+from harness.evaluation import EvalSettings, Evaluator, evaluation_episodes
+from harness.trainer import PhaseTimer, TrainSettings, train_stage
+from methods import TaskContext, get_method, method_names
+from policies import FlowMatchingConfig, FlowMatchingPolicy
+
+STATE_DIM, ACTION_DIM = 39, 4  # Meta-World's
+MW_QUICK = ["reach-v3", "push-v3", "drawer-open-v3", "button-press-topdown-v3", "window-open-v3",
+            "door-open-v3", "drawer-close-v3", "window-close-v3", "button-press-v3"]
+
+
+def synthetic_data(n: int, seed: int, task: str = "task", chunk: int = 4) -> TrainingData:
+    g = torch.Generator().manual_seed(seed)
+    return TrainingData({"state": torch.randn(n, STATE_DIM, generator=g)},
+                        torch.randn(n, chunk, ACTION_DIM, generator=g).clamp(-1, 1),
+                        torch.ones(n, chunk, dtype=torch.bool), torch.zeros(n, dtype=torch.long),
+                        torch.randn(1, 384, generator=g), [task])
+
+
+def _policy(size: str) -> FlowMatchingPolicy:
+    torch.manual_seed(0)
+    return FlowMatchingPolicy(FlowMatchingConfig(STATE_DIM, ACTION_DIM, size=size))
+
+
+def _ready_method(name: str, policy, foundation: TrainingData, task: TrainingData):
+    method = get_method(name)()
+    method.after_task(TaskContext(0, "foundation", foundation, policy, 0.05, 0))
+    return method, TaskContext(1, "task", task, policy, 0.05, 0)
+
+
+def bench_train(steps: int = 200, batch_size: int = 256) -> None:
+    print(f"training throughput (batch {batch_size}, {steps} steps, {torch.get_num_threads()} thread)")
+    print("| policy | parameters | samples/s | step ms | outside forward+backward |")
+    print("|---|---|---|---|---|")
+    for size in ("tiny", "default"):
+        policy = _policy(size)
+        data = synthetic_data(20_000, 0)
+        ctx = TaskContext(1, "task", data, policy, 0.05, steps)
+        g = torch.Generator().manual_seed(0)
+        train_stage(ctx, get_method("sft")(), TrainSettings(20, batch_size, 3e-4), g)  # warm-up
+        timer = PhaseTimer()
+        start = time.perf_counter()
+        train_stage(ctx, get_method("sft")(), TrainSettings(steps, batch_size, 3e-4), g, timer=timer)
+        total = time.perf_counter() - start
+        inside = timer.seconds.get("forward", 0) + timer.seconds.get("backward", 0)
+        n_params = sum(p.numel() for p in policy.parameters())
+        print(f"| {size} | {n_params:,} | {steps * batch_size / total:,.0f} | "
+              f"{1000 * total / steps:.1f} | {100 * (1 - inside / total):.1f}% (target < 10%) |")
+
+
+def _method_memory(name: str, steps: int) -> dict:
+    """Run in a fresh process: peak RSS growth while training, and the method's own state."""
+    torch.set_num_threads(1)
+    policy = _policy("default")
+    foundation, task = synthetic_data(6000, 1, "foundation"), synthetic_data(6000, 2)
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    method, ctx = _ready_method(name, policy, foundation, task)
+    train_stage(ctx, method, TrainSettings(steps, 256, 3e-4), torch.Generator().manual_seed(0))
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    state = method.state_dict()
+    state_bytes = sum(t.numel() * t.element_size() for t in _tensors(state))
+    return {"peak_rss_growth_mb": (peak - base) / 1024, "state_mb": state_bytes / 2**20}
+
+
+def _tensors(obj):
+    if isinstance(obj, torch.Tensor):
+        yield obj
+    elif isinstance(obj, dict):
+        for v in obj.values():
+            yield from _tensors(v)
+    elif isinstance(obj, (list, tuple)):
+        for v in obj:
+            yield from _tensors(v)
+    elif isinstance(obj, TrainingData):
+        yield from _tensors([obj.obs, obj.actions, obj.action_mask, obj.task_index,
+                             obj.instruction_table])
+
+
+def bench_methods(rounds: int = 7, steps: int = 20) -> None:
+    """Step time of every method, interleaved round by round so machine drift cancels out."""
+    names = ["sft"] + [n for n in method_names() if n != "sft"]
+    foundation, task = synthetic_data(6000, 1, "foundation"), synthetic_data(6000, 2)
+    base = _policy("default")
+    runs = {}
+    for name in names:
+        policy = copy.deepcopy(base)
+        method, ctx = _ready_method(name, policy, foundation, task)
+        runs[name] = (method, ctx)
+        train_stage(ctx, method, TrainSettings(5, 256, 3e-4), torch.Generator().manual_seed(0))
+    times: dict[str, list[float]] = {n: [] for n in names}
+    for r in range(rounds):
+        for name in names:
+            method, ctx = runs[name]
+            start = time.perf_counter()
+            train_stage(ctx, method, TrainSettings(steps, 256, 3e-4), torch.Generator().manual_seed(r))
+            times[name].append((time.perf_counter() - start) / steps)
+    memory = {}
+    for name in names:
+        out = subprocess.run([sys.executable, "-m", "harness.perf", "_memory", name],
+                             capture_output=True, text=True, check=True)
+        memory[name] = json.loads(out.stdout.strip().splitlines()[-1])
+    sft_time = statistics.median(times["sft"])
+    sft_mem = max(memory["sft"]["peak_rss_growth_mb"], 1e-9)
+    print(f"methods on the default policy (batch 256; median of {rounds} interleaved rounds of "
+          f"{steps} steps; memory: peak RSS growth while training, in a fresh process each)")
+    print("| method | step ms | time vs sft | peak RSS growth MB | memory vs sft | state held MB |")
+    print("|---|---|---|---|---|---|")
+    for name in names:
+        t = statistics.median(times[name])
+        m = memory[name]
+        print(f"| {name} | {1000 * t:.1f} | {t / sft_time:.3f}x | {m['peak_rss_growth_mb']:.1f} | "
+              f"{m['peak_rss_growth_mb'] / sft_mem:.2f}x | {m['state_mb']:.2f} |")
+    print("target: consft within 1.05x of sft in time, and no parameter-sized state")
+
+
+def _raw_expert_share(suite_name: str, episodes, max_steps: int) -> int:
+    from suites import get_suite
+
+    suite = get_suite(suite_name)
+    envs = {}
+    steps = 0
+    for ep in episodes:
+        env = envs.setdefault(ep.task, suite.make_env(ep.task))
+        env.reset(ep.seed)
+        for _ in range(max_steps):
+            steps += 1
+            if env.step(env.expert_action()).success:
+                break
+    return steps
+
+
+def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200) -> None:
+    """Evaluation env steps/s against raw expert stepping; 1 -> 2 worker speed-up."""
+    from suites import get_suite
+
+    suite = get_suite("metaworld")
+    eps = evaluation_episodes("metaworld", MW_QUICK, episodes)
+    settings = EvalSettings(episodes, max_steps, n_action_steps=4)
+    ctx = get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=ctx) as pool:  # warm: imports and env builds
+        list(pool.map(_raw_expert_share, ["metaworld"] * workers, [eps[:1]] * workers, [1] * workers))
+        start = time.perf_counter()
+        shares = [eps[i::workers] for i in range(workers)]
+        raw_steps = sum(pool.map(_raw_expert_share, ["metaworld"] * workers, shares,
+                                 [max_steps] * workers))
+        raw_time = time.perf_counter() - start
+    policy = _policy("default")
+    instructions = {t: torch.randn(384).numpy() for t in MW_QUICK}
+    rates = {}
+    for n in (1, workers):
+        with Evaluator(suite, settings, workers=n) as evaluator:
+            evaluator.evaluate(policy, MW_QUICK, instructions, noise_seed=0)  # warm
+            start = time.perf_counter()
+            results = evaluator.evaluate(policy, MW_QUICK, instructions, noise_seed=0)
+            elapsed = time.perf_counter() - start
+        rates[n] = (sum(r.steps for r in results.values()) / elapsed, elapsed)
+    raw_rate = raw_steps / raw_time
+    print(f"evaluation on mw-quick's 9 tasks x {episodes} episodes, <= {max_steps} steps "
+          f"(untrained default policy, so episodes run long)")
+    print("| what | processes | env steps/s | wall s |")
+    print("|---|---|---|---|")
+    print(f"| raw simulator + scripted experts | {workers} | {raw_rate:,.0f} | {raw_time:.1f} |")
+    for n, (rate, elapsed) in rates.items():
+        print(f"| policy evaluation | {n} | {rate:,.0f} | {elapsed:.1f} |")
+    print(f"evaluation / raw with {workers} processes: {rates[workers][0] / raw_rate:.2f} (target >= 0.8)")
+    print(f"speed-up 1 -> {workers} workers: {rates[1][1] / rates[workers][1]:.2f}x (target >= 1.6x)")
+
+
+def main(argv: list[str]) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    torch.set_num_threads(1)
+    what = argv[0] if argv else ""
+    if what == "train":
+        bench_train()
+    elif what == "methods":
+        bench_methods()
+    elif what == "eval":
+        bench_eval(workers=int(argv[1]) if len(argv) > 1 else 2)
+    elif what == "_memory":
+        print(json.dumps(_method_memory(argv[1], steps=30)))
+    else:
+        print("usage: python -m harness.perf {train,methods,eval [workers]}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,46 @@
+"""`python -m harness.report [EXPERIMENT=mw-quick] [results_dir=results] [log_run=1]`.
+
+BENCH= and PROFILE= name the experiment the way `make bench` does, so the Makefile can pass the
+same variables to both.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from harness.config import PROFILE_BENCHMARKS, _coerce, parse_overrides
+from harness.errors import RetainError
+from harness.report.build import ReportSettings, build_report
+
+KEYS = ("EXPERIMENT", "BENCH", "PROFILE", "results_dir", "log_run")
+
+
+def settings_from(args: list[str]) -> ReportSettings:
+    given = parse_overrides(args)
+    unknown = sorted(set(given) - set(KEYS))
+    if unknown:
+        raise RetainError(f"unknown report setting {unknown[0]!r}; valid: {', '.join(KEYS)}")
+    profile = given.get("PROFILE", "")
+    if profile and profile not in PROFILE_BENCHMARKS:
+        raise RetainError(f"unknown profile {profile!r}; valid: {', '.join(PROFILE_BENCHMARKS)}")
+    experiment = (given.get("EXPERIMENT") or given.get("BENCH")
+                  or PROFILE_BENCHMARKS.get(profile, "mw-quick"))
+    return ReportSettings(experiment=experiment,
+                          results_dir=given.get("results_dir") or "results",
+                          log_run=_coerce("log_run", given.get("log_run", "1"), bool))
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        settings = settings_from(list(sys.argv[1:] if argv is None else argv))
+        files = build_report(settings)
+    except RetainError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"[retain] report for {settings.experiment}: {len(files)} files in {settings.out_dir}/")
+    print(f"  table: {settings.out_dir / 'summary.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,170 @@
+"""The libero_rs suite: contract, seeding, experts, and the real-LIBERO file reader."""
+
+from __future__ import annotations
+
+import json
+from functools import cache
+
+import numpy as np
+import pytest
+
+from suites import get_suite
+from suites.base import episode_seeds
+
+h5py = pytest.importorskip("h5py")
+pytest.importorskip("robosuite")
+
+SUITE = get_suite("libero_rs")
+TASKS = SUITE.task_names()
+
+
+@cache
+def env_for(task: str):
+    return SUITE.make_env(task)  # one env per task for the whole file: building one takes ~1 s
+
+
+def test_suite_shape():
+    from suites.robosuite_libero.env import STATE_DIM
+
+    assert len(TASKS) >= 12
+    assert SUITE.state_dim == STATE_DIM and SUITE.action_dim == 7
+    instructions = [SUITE.instruction(t) for t in TASKS]
+    assert all(instructions) and len(set(instructions)) == len(TASKS)
+    with pytest.raises(ValueError, match="unknown libero_rs task"):
+        SUITE.make_env("no_such_task")
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_task_resets_steps_and_reproduces(task):
+    env = env_for(task)
+    seed, other = episode_seeds("libero_rs", task, "demo", 2)
+    first = env.reset(seed)["state"]
+    assert first.shape == (SUITE.state_dim,) and first.dtype == np.float32
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        result = env.step(rng.uniform(-1, 1, SUITE.action_dim))
+        assert isinstance(result.success, bool)
+        assert result.obs["state"].shape == (SUITE.state_dim,)
+    assert np.array_equal(env.reset(seed)["state"], first)  # same seed, same start
+    assert not np.array_equal(env.reset(other)["state"], first)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_expert_solves_first_eval_episode(task):
+    env = env_for(task)
+    env.reset(episode_seeds("libero_rs", task, "eval", 1)[0])
+    for _ in range(SUITE.max_episode_steps):
+        action = env.expert_action()
+        assert action.shape == (7,) and np.all(np.abs(action) <= 1)
+        if env.step(action).success:
+            return
+    pytest.fail(f"expert did not solve {task} within {SUITE.max_episode_steps} steps")
+
+
+def test_cameras_give_uint8_images():
+    env = SUITE.make_env("goal_lift_red", cameras=True, image_size=32)  # needs MUJOCO_GL=egl
+    try:
+        obs = env.reset(0)
+        for key in ("agentview_image", "wrist_image"):
+            assert obs[key].shape == (32, 32, 3) and obs[key].dtype == np.uint8
+        assert env.step(np.zeros(7)).obs["agentview_image"].shape == (32, 32, 3)
+    finally:
+        env.close()
+
+
+# --- real LIBERO files ---------------------------------------------------------------------------
+def write_libero_file(path, lengths=(5, 7), images=True, drop: str | None = None,
+                      instruction="put the bowl on the plate"):
+    """A file in exactly LIBERO's layout; `drop` omits one dataset (relative to demo_0)."""
+    rng = np.random.default_rng(0)
+    with h5py.File(path, "w") as f:
+        data = f.create_group("data")
+        data.attrs["problem_info"] = json.dumps({"language_instruction": instruction})
+        for i, steps in enumerate(lengths):
+            demo = data.create_group(f"demo_{i}")
+            fields = {
+                "actions": rng.uniform(-1, 1, (steps, 7)),
+                "obs/ee_states": rng.normal(size=(steps, 6)),
+                "obs/gripper_states": rng.normal(size=(steps, 2)),
+                "obs/joint_states": rng.normal(size=(steps, 7)),
+            }
+            if images:
+                for key in ("agentview_rgb", "eye_in_hand_rgb"):
+                    fields[f"obs/{key}"] = rng.integers(0, 255, (steps, 8, 8, 3), dtype=np.uint8)
+            for key, value in fields.items():
+                if not (i == 0 and key == drop):
+                    demo.create_dataset(key, data=value)
+    return path
+
+
+def test_libero_reader_round_trips(tmp_path):
+    from suites.robosuite_libero.libero_files import read_libero_file
+
+    path = write_libero_file(tmp_path / "task_demo.hdf5")
+    task = read_libero_file(path)
+    assert task.instruction == "put the bowl on the plate"
+    assert [len(e["actions"]) for e in task.episodes] == [5, 7]
+    with h5py.File(path) as f:
+        demo = f["data/demo_1"]
+        episode = task.episodes[1]
+        assert episode["actions"].dtype == np.float32
+        np.testing.assert_allclose(episode["actions"], demo["actions"][()], rtol=1e-6)
+        state = np.concatenate([demo["obs/ee_states"][()], demo["obs/gripper_states"][()]], 1)
+        np.testing.assert_allclose(episode["obs"]["state"], state, rtol=1e-6)
+        assert np.array_equal(episode["obs"]["agentview_image"], demo["obs/agentview_rgb"][()])
+        assert np.array_equal(episode["obs"]["wrist_image"], demo["obs/eye_in_hand_rgb"][()])
+    no_images = read_libero_file(write_libero_file(tmp_path / "plain.hdf5", images=False))
+    assert set(no_images.episodes[0]["obs"]) == {"state"}
+
+
+@pytest.mark.parametrize("drop, key", [("obs/ee_states", "data/demo_0/obs/ee_states"),
+                                       ("actions", "data/demo_0/actions")])
+def test_libero_reader_names_missing_key(tmp_path, drop, key):
+    from suites.robosuite_libero.libero_files import read_libero_file
+
+    path = write_libero_file(tmp_path / "broken.hdf5", drop=drop)
+    with pytest.raises(ValueError) as err:
+        read_libero_file(path)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and key in message
+
+
+def test_libero_reader_rejects_bad_shapes_and_non_hdf5(tmp_path):
+    from suites.robosuite_libero.libero_files import read_libero_file
+
+    path = write_libero_file(tmp_path / "shape.hdf5")
+    with h5py.File(path, "a") as f:
+        del f["data/demo_1/actions"]
+        f["data/demo_1/actions"] = np.zeros((7, 6))
+    with pytest.raises(ValueError, match="bad shape .*data/demo_1/actions"):
+        read_libero_file(path)
+    text = tmp_path / "notes.hdf5"
+    text.write_text("not hdf5")
+    with pytest.raises(ValueError, match="not a readable HDF5 file"):
+        read_libero_file(text)
+
+
+def test_real_libero_missing_is_one_clear_line(monkeypatch):
+    from suites.robosuite_libero import libero_files
+
+    monkeypatch.setattr(libero_files, "libero_env_available", lambda: False)
+    with pytest.raises(libero_files.LiberoUnavailable) as err:
+        libero_files.require_libero()
+    assert "'libero' package" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_expert_table_rewrites_only_its_block(tmp_path):
+    from suites.robosuite_libero.expert_table import (
+        BEGIN,
+        END,
+        ExpertResult,
+        render_table,
+        write_table,
+    )
+
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{BEGIN}\nold\n{END}\noutro\n")
+    write_table(render_table([ExpertResult("t", "goal", 19, 20, 88.0)], 150.0), readme)
+    text = readme.read_text()
+    assert "| `t` | goal | 19/20 (95%) | 88.0 |" in text
+    assert text.startswith("intro\n") and text.endswith("outro\n") and "old" not in text
