@@ -202,6 +202,9 @@ def _run_one(variant: Variant, suite, data, foundation, seed, evaluator, tracker
                   f"foundation success {_foundation_success(cfg, record):.3f}", flush=True)
             logger.flush()
             tracker.log_metric_rows(child, [(record.stage, _stage_metrics(cfg, record))])
+            if record.curve:
+                tracker.log_metric_rows(child, [(n, {f"curve_success/{record.task}": v})
+                                                for n, v in zip(record.curve_steps, record.curve)])
 
         tracker.log_metric_rows(child, stage_rows)
         result = run_stream(cfg, suite, data, foundation, method, seed, evaluator, logger, on_stage,

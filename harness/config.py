@@ -57,6 +57,7 @@ class BenchConfig:
     progress: bool = True
     torch_threads: int = 1  # intra-op threads per process; small CPU batches are slower with more
     eval_workers: int = 0  # evaluation processes; 0 means one per core
+    learning_curve_every: int = 0  # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
 
     def workers(self) -> int:
         return self.eval_workers if self.eval_workers > 0 else (os.cpu_count() or 1)
@@ -114,7 +115,7 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
     cfg.profile = profile
 
 
-def _coerce(key: str, value: Any, annotation: Any) -> Any:
+def coerce(key: str, value: Any, annotation: Any) -> Any:
     """Turn a YAML or command-line value into the field's type, or fail naming both."""
     if isinstance(annotation, str):
         annotation = eval(annotation, vars(typing) | {"Any": Any})  # noqa: S307 - our own annotations
@@ -155,7 +156,7 @@ def _coerce(key: str, value: Any, annotation: Any) -> Any:
 
 def set_field(cfg: Any, key: str, value: Any) -> None:
     hints = typing.get_type_hints(type(cfg))
-    setattr(cfg, key, _coerce(key, value, hints[key]))
+    setattr(cfg, key, coerce(key, value, hints[key]))
 
 
 def parse_overrides(args: list[str]) -> dict[str, str]:

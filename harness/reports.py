@@ -78,7 +78,8 @@ def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, P
                                                          result.heldout_matrix()))
     write_text(paths["updates_per_layer"], rows_csv(result.layer_rows))
     stages = [{"stage": s.stage, "trained_on": s.task, "train_loss": s.train_loss,
-               "updates": s.updates, "updates_stage_over_stage": s.updates_stage} for s in result.stages]
+               "updates": s.updates, "updates_stage_over_stage": s.updates_stage,
+               "curve_steps": s.curve_steps, "curve": s.curve} for s in result.stages]
     write_text(paths["metrics"], json.dumps({"method": result.method, "seed": result.seed,
                                               "metrics": result.metrics, "stages": stages},
                                              indent=2, sort_keys=True, default=float) + "\n")

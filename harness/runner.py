@@ -17,7 +17,7 @@ from harness.data import BenchmarkData
 from harness.errors import RetainError
 from harness.evaluation import Evaluator
 from harness.foundation import Foundation, build_policy
-from harness.metrics import CoreMetrics, core_metrics, offline_retention
+from harness.metrics import CoreMetrics, core_metrics, libero_metrics, offline_retention
 from harness.seeding import derive_seed, generator
 from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
 from harness.trainer import TrainSettings, train_stage
@@ -108,10 +108,23 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
             if log_step is not None:
                 log_step(offset + step, metrics)
 
+        curve_steps, curve = [0], [stages[-1].success[task]]
+
+        def learning_curve(done: int, task=task, curve_steps=curve_steps, curve=curve) -> None:
+            every = cfg.learning_curve_every
+            if every > 0 and done % every == 0 and done < cfg.steps_per_task:
+                result = evaluator.evaluate(policy, [task], data.instructions, derive_seed(seed, "eval"))
+                curve_steps.append(done)
+                curve.append(result[task].success_rate)
+                policy.train()
+
         result = train_stage(context(stage, task, data.train[task]), method, settings,
-                             generator(seed, "stage", stage), log)
+                             generator(seed, "stage", stage), log, after_step=learning_curve)
         record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, task)
         record.train_loss = result.final_loss
+        if cfg.learning_curve_every > 0:
+            record.curve_steps = curve_steps + [cfg.steps_per_task]
+            record.curve = curve + [record.success[task]]
         current = policy.state_dict()
         record.updates, layer_rows = update_stats(theta0, current)
         record.updates_stage, _ = update_stats(previous, current)
@@ -159,6 +172,9 @@ def summary_metrics(cfg: BenchConfig, result: RunResult) -> dict[str, float]:
     core: CoreMetrics = core_metrics(result.success_matrix(), foundation, stream)
     metrics = core.as_dict()
     metrics["offline_retention"] = float(offline_retention(result.heldout_matrix(), foundation)[-1])
+    if all(s.curve for s in result.stages[1:]):
+        curves = [np.array(s.curve) for s in result.stages[1:]]
+        metrics.update(libero_metrics(curves, result.success_matrix(), stream).as_dict())
     for key, value in result.stages[-1].updates.items():
         metrics[f"update_{key}"] = value
     return metrics

@@ -25,6 +25,8 @@ class StageRecord:
     updates: dict[str, float] = field(default_factory=dict)  # theta_i vs theta_0
     updates_stage: dict[str, float] = field(default_factory=dict)  # theta_i vs theta_{i-1}
     env_steps: int = 0
+    curve_steps: list[int] = field(default_factory=list)  # learning curve of this stage's task:
+    curve: list[float] = field(default_factory=list)  # success at those steps (0 and the end too)
 
     def as_dict(self) -> dict:
         return asdict(self)

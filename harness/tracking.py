@@ -62,7 +62,7 @@ class Tracker:
 
         Path(results_dir).mkdir(parents=True, exist_ok=True)
         self.uri = tracking_uri(results_dir)
-        self.client = MlflowClient(tracking_uri=self.uri)
+        self.client = _RetryOnLock(MlflowClient(tracking_uri=self.uri))
         self.experiment_id = self._experiment(experiment, Path(results_dir).resolve() / "mlartifacts")
 
     def _experiment(self, name: str, artifact_root: Path) -> str:
@@ -104,7 +104,7 @@ class Tracker:
         from mlflow.entities import Metric
 
         now = int(time.time() * 1000)
-        items = [Metric(_metric_key(k), float(v), now, step) for step, m in rows for k, v in m.items()
+        items = [Metric(metric_key(k), float(v), now, step) for step, m in rows for k, v in m.items()
                  if v == v]  # NaN is skipped: MLflow stores it, but plots break on it
         for i in range(0, len(items), _MAX_BATCH):
             self.client.log_batch(run_id, metrics=items[i:i + _MAX_BATCH])
@@ -120,6 +120,28 @@ class Tracker:
         self.client.set_terminated(run_id, status)
 
 
-def _metric_key(key: str) -> str:
+class _RetryOnLock:
+    """Calls through to MlflowClient, retrying while another process holds the SQLite lock."""
+
+    def __init__(self, client, attempts: int = 40):
+        self._client, self._attempts = client, attempts
+
+    def __getattr__(self, name):
+        method = getattr(self._client, name)
+
+        def call(*args, **kwargs):
+            for attempt in range(self._attempts):
+                try:
+                    return method(*args, **kwargs)
+                except Exception as exc:  # noqa: BLE001 - SQLAlchemy's OperationalError, wrapped
+                    if "locked" not in str(exc) or attempt == self._attempts - 1:
+                        raise
+                    time.sleep(min(2.0, 0.05 * 2**attempt))
+            return None
+
+        return call
+
+
+def metric_key(key: str) -> str:
     """MLflow keys allow letters, digits, and _ - . / and space."""
     return "".join(c if c.isalnum() or c in "_-./ " else "_" for c in key)

@@ -52,6 +52,7 @@ class _NoTimer:
 def train_stage(
     ctx: TaskContext, method: Method, settings: TrainSettings, generator: torch.Generator,
     log: StepLogger | None = None, timer: PhaseTimer | None = None,
+    after_step: Callable[[int], None] | None = None,
 ) -> TrainResult:
     """Fine-tune `ctx.policy` on `ctx.data` for `settings.steps` steps with `method`.
 
@@ -91,6 +92,8 @@ def train_stage(
             tail_losses.append(mean_loss)
         if log is not None:
             log(step, {"train/flow_loss": mean_loss, "train/objective": loss.item(), **stats})
+        if after_step is not None:
+            after_step(step + 1)  # steps done so far, e.g. for learning-curve evaluations
     method.after_task(ctx)
     policy.eval()
     final = sum(tail_losses) / len(tail_losses) if tail_losses else math.nan

@@ -12,7 +12,7 @@ from harness.cli import main
 def tiny_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("tiny")
     args = ["bench", "PROFILE=tiny", "METHOD=sft", f"results_dir={root}/results",
-            f"cache_dir={root}/cache", "progress=false"]
+            f"cache_dir={root}/cache", "progress=false", "learning_curve_every=5", "eval_workers=1"]
     assert main(args) == 0
     return root, args
 
@@ -33,6 +33,12 @@ def test_outputs_on_disk(tiny_run):
     assert metrics["retention"] == pytest.approx(R[2, :2].mean())
     assert metrics["plasticity"] == pytest.approx((R[1, 2] + R[2, 3]) / 2)
     assert 0 < metrics["update_relative_l2"]
+    stages = json.loads((run / "metrics.json").read_text())["stages"]
+    curves = [s["curve"] for s in stages[1:]]
+    assert [s["curve_steps"] for s in stages[1:]] == [[0, 5, 10], [0, 5, 10]]
+    assert curves[0][0] == R[0, 2] and curves[0][-1] == R[1, 2] and curves[1][-1] == R[2, 3]
+    assert metrics["fwt"] == pytest.approx((np.mean(curves[0]) + np.mean(curves[1])) / 2)
+    assert metrics["nbt"] == pytest.approx((max(curves[0]) - R[2, 2]) / 2)
     config = (run / "config.yaml").read_text()
     assert "git_commit" in config and "torch" in config and "steps_per_task: 10" in config
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from harness.config import PROFILE_BENCHMARKS, _coerce, parse_overrides
+from harness.config import PROFILE_BENCHMARKS, coerce, parse_overrides
 from harness.errors import RetainError
 from harness.report.build import ReportSettings, build_report
 
@@ -27,7 +27,7 @@ def settings_from(args: list[str]) -> ReportSettings:
                   or PROFILE_BENCHMARKS.get(profile, "mw-quick"))
     return ReportSettings(experiment=experiment,
                           results_dir=given.get("results_dir") or "results",
-                          log_run=_coerce("log_run", given.get("log_run", "1"), bool))
+                          log_run=coerce("log_run", given.get("log_run", "1"), bool))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.errors import RetainError
-from harness.tracking import _metric_key
+from harness.tracking import metric_key
 
 PARENT_TAG = "mlflow.parentRunId"
 
@@ -128,7 +128,7 @@ def _success_matrix(client, run_id: str, tasks: list[str], k: int) -> np.ndarray
     """R[stage, task] from the `success/<task>` metric histories (step = stage); NaN if absent."""
     R = np.full((k + 1, len(tasks)), np.nan)
     for j, task in enumerate(tasks):
-        history = sorted(client.get_metric_history(run_id, _metric_key(f"success/{task}")),
+        history = sorted(client.get_metric_history(run_id, metric_key(f"success/{task}")),
                          key=lambda m: (m.step, m.timestamp))
         for m in history:  # a resumed run may log a stage twice: the later value wins
             if 0 <= m.step <= k:

@@ -1,0 +1,160 @@
+"""RoboTwin-style bimanual manipulation on MuJoCo through robosuite 1.5: two Panda arms, eight tasks.
+
+Actions are 14-d, [left arm 7 | right arm 7], each arm = OSC_POSE deltas (dx, dy, dz in units of
+5 cm, axis-angle rotation in units of 0.5 rad, world frame) + gripper (+1 close, -1 open), at 20 Hz.
+"left"/"right" are as seen by the robots (who face +x): left = robosuite robot 1 at y = +0.25.
+The state layout (`STATE_LAYOUT`) is shared by all tasks; slots a task does not use are zeros.
+See README.md in this folder for the task list and the experts' success table.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from suites import register_suite
+from suites.base import Observation, StepResult, Suite, TaskEnv
+
+MAX_OBJECTS = 3
+MAX_POINTS = 2
+ARM_STATE = ("eef_pos", 3), ("eef_quat", 4), ("gripper_qpos", 2)
+STATE_LAYOUT: list[tuple[str, int]] = (
+    [(f"{arm}_{key}", n) for arm in ("left", "right") for key, n in ARM_STATE]
+    + [(f"object{i}_{key}", n) for i in range(MAX_OBJECTS) for key, n in (("pos", 3), ("quat", 4))]
+    + [(f"point{i}_pos", 3) for i in range(MAX_POINTS)]
+)
+STATE_DIM = sum(n for _, n in STATE_LAYOUT)  # 45
+ACTION_DIM = 14
+
+
+def _quat(mat: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) of a rotation matrix."""
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(mat).reshape(-1))
+    return q
+
+
+def _hemisphere(q: np.ndarray, ref) -> np.ndarray:
+    """q and -q are the same rotation; report the one nearer `ref` so the sign never jumps."""
+    return q if np.dot(q, ref) >= 0 else -q
+
+
+# The grip-site orientation of a gripper pointing straight down (fingers along y): the eef quaternions'
+# reference, so a downward gripper's quaternion keeps one sign whatever its yaw within +-90 degrees.
+_EEF_REF = None
+
+
+def _eef_ref() -> np.ndarray:
+    global _EEF_REF
+    if _EEF_REF is None:
+        from suites.bimanual.script import target_orientation
+
+        _EEF_REF = _quat(target_orientation(np.pi / 2))
+    return _EEF_REF
+
+
+class BimanualEnv(TaskEnv):
+    def __init__(self, task: str, cameras: bool, image_size: int):
+        from suites.bimanual.scene import env_kwargs
+        from suites.bimanual.tasks import TASKS
+
+        self.spec = TASKS[task]
+        self._env = self.spec.build(env_kwargs(cameras, image_size))
+        self._bodies, self._sites = self.spec.names(self._env)
+        self._cameras = cameras
+        self._script = None
+        self._world = None
+        self._raw_obs: dict = {}
+
+    # -- TaskEnv
+    def reset(self, seed: int) -> Observation:
+        from suites.bimanual.scene import seed_env
+        from suites.bimanual.script import Script
+
+        seed_env(self._env, int(seed))
+        self._raw_obs = self._env.reset()
+        self._refresh()
+        self._script = Script(self.spec.expert(self._world))
+        return self._observation()
+
+    def step(self, action: np.ndarray) -> StepResult:
+        from suites.bimanual.scene import to_robosuite_action
+
+        action = np.clip(np.asarray(action, dtype=np.float64).reshape(ACTION_DIM), -1.0, 1.0)
+        self._raw_obs, _, _, _ = self._env.step(to_robosuite_action(action))
+        self._refresh()
+        return StepResult(self._observation(), self.success())
+
+    def expert_action(self) -> np.ndarray:
+        """The expert's action for this step; call it once per step (its phase clock advances)."""
+        assert self._script is not None, "reset() first"
+        return self._script.act(self._world)
+
+    def close(self) -> None:
+        self._env.close()
+
+    # -- helpers
+    def success(self) -> bool:
+        return bool(self.spec.success(self._world, self._env))
+
+    @property
+    def world(self):
+        """Privileged state snapshot (for tests and debugging)."""
+        return self._world
+
+    def _refresh(self) -> None:
+        from suites.bimanual.world import read_world
+
+        self._world = read_world(self._env, self._bodies, self._sites)
+
+    def _observation(self) -> Observation:
+        obs = {"state": state_vector(self._world, self.spec)}
+        if self._cameras:
+            # robosuite renders with OpenGL's origin at the bottom-left: flip rows to get an upright image
+            obs["agentview_image"] = np.ascontiguousarray(self._raw_obs["agentview_image"][::-1]).astype(np.uint8)
+        return obs
+
+
+def state_vector(world, spec) -> np.ndarray:
+    """Pack a World into the shared STATE_LAYOUT."""
+    parts = []
+    for arm in ("left", "right"):
+        parts += [world.eef_pos[arm], _hemisphere(_quat(world.eef_mat[arm]), _eef_ref()), world.gripper_qpos[arm]]
+    for i in range(MAX_OBJECTS):
+        if i < len(spec.objects):
+            name = spec.objects[i]
+            ref = spec.quat_ref.get(name, (1.0, 0.0, 0.0, 0.0))
+            parts += [world.pos[name], _hemisphere(world.quat[name], ref)]
+        else:
+            parts += [np.zeros(7)]
+    for i in range(MAX_POINTS):
+        parts.append(world.pos[spec.points[i]] if i < len(spec.points) else np.zeros(3))
+    state = np.concatenate(parts).astype(np.float32)
+    assert state.shape == (STATE_DIM,)
+    return state
+
+
+@register_suite("bimanual")
+class BimanualSuite(Suite):
+    state_dim = STATE_DIM
+    action_dim = ACTION_DIM
+    max_episode_steps = 400  # 20 s at 20 Hz; the slowest expert needs about half
+
+    def __init__(self):
+        os.environ.setdefault("MUJOCO_GL", "egl")
+
+    def task_names(self) -> list[str]:
+        from suites.bimanual.tasks import TASKS
+
+        return list(TASKS)
+
+    def instruction(self, task: str) -> str:
+        from suites.bimanual.tasks import TASKS
+
+        return TASKS[self.check_task(task)].instruction
+
+    def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv:
+        return BimanualEnv(self.check_task(task), cameras, image_size)
