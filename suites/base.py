@@ -8,6 +8,7 @@ state, and able to ask its scripted expert (which reads privileged state) for th
 from __future__ import annotations
 
 import hashlib
+import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
@@ -59,6 +60,9 @@ class Suite(ABC):
     action_dim: int
     max_episode_steps: int
 
+    def __init__(self):
+        os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering when cameras are on
+
     @abstractmethod
     def task_names(self) -> list[str]: ...
 
@@ -76,6 +80,19 @@ class Suite(ABC):
     def version(self) -> str:
         """Part of the demo-cache key: bump when observations, experts or success change."""
         return "1"
+
+
+class TaskTableSuite(Suite):
+    """A suite whose tasks are the entries of a table: name -> spec with an `instruction`."""
+
+    @abstractmethod
+    def tasks(self) -> dict: ...
+
+    def task_names(self) -> list[str]:
+        return list(self.tasks())
+
+    def instruction(self, task: str) -> str:
+        return self.tasks()[self.check_task(task)].instruction
 
 
 def episode_seeds(suite: str, task: str, split: str, n: int) -> list[int]:

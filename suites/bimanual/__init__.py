@@ -9,12 +9,10 @@ See README.md in this folder for the task list and the experts' success table.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from suites import register_suite
-from suites.base import Observation, StepResult, Suite, TaskEnv
+from suites.base import Observation, StepResult, TaskEnv, TaskTableSuite
 
 MAX_OBJECTS = 3
 MAX_POINTS = 2
@@ -138,23 +136,15 @@ def state_vector(world, spec) -> np.ndarray:
 
 
 @register_suite("bimanual")
-class BimanualSuite(Suite):
+class BimanualSuite(TaskTableSuite):
     state_dim = STATE_DIM
     action_dim = ACTION_DIM
     max_episode_steps = 400  # 20 s at 20 Hz; the slowest expert needs about half
 
-    def __init__(self):
-        os.environ.setdefault("MUJOCO_GL", "egl")
-
-    def task_names(self) -> list[str]:
+    def tasks(self) -> dict:
         from suites.bimanual.tasks import TASKS
 
-        return list(TASKS)
-
-    def instruction(self, task: str) -> str:
-        from suites.bimanual.tasks import TASKS
-
-        return TASKS[self.check_task(task)].instruction
+        return TASKS
 
     def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv:
         return BimanualEnv(self.check_task(task), cameras, image_size)

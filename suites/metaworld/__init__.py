@@ -7,8 +7,6 @@ frame of those, goal). Initial states are seeded per episode through Meta-World'
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from suites import register_suite
@@ -83,9 +81,6 @@ class MetaWorldSuite(Suite):
     state_dim = _STATE_DIM
     action_dim = _ACTION_DIM
     max_episode_steps = 500  # Meta-World's own limit; benchmarks usually set less
-
-    def __init__(self):
-        os.environ.setdefault("MUJOCO_GL", "egl")
 
     def task_names(self) -> list[str]:
         envs = {name.removesuffix("-goal-observable") for name in _env_classes()}

@@ -7,10 +7,8 @@ arena and object models. See README.md for the task table, state layout and expe
 
 from __future__ import annotations
 
-import os
-
 from suites import register_suite
-from suites.base import Suite, TaskEnv
+from suites.base import TaskEnv, TaskTableSuite
 from suites.robosuite_libero.tasks import TASKS
 
 ACTION_DIM = 7
@@ -18,19 +16,13 @@ STATE_DIM = 36  # checked against env.STATE_DIM in the tests; kept here so the s
 
 
 @register_suite("libero_rs")
-class LiberoRSSuite(Suite):
+class LiberoRSSuite(TaskTableSuite):
     state_dim = STATE_DIM
     action_dim = ACTION_DIM
     max_episode_steps = 300
 
-    def __init__(self):
-        os.environ.setdefault("MUJOCO_GL", "egl")
-
-    def task_names(self) -> list[str]:
-        return list(TASKS)
-
-    def instruction(self, task: str) -> str:
-        return TASKS[self.check_task(task)].instruction
+    def tasks(self) -> dict:
+        return TASKS
 
     def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv:
         from suites.robosuite_libero.env import LiberoRSEnv
