@@ -68,6 +68,7 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
     key = foundation_key(cfg, suite, seed)
     directory = Path(cfg.cache_dir) / "foundation" / key
     weights, stage0_path = directory / "policy.pt", directory / f"stage0-{stage0_key(cfg, suite)}.pt"
+    torch.manual_seed(derive_seed(seed, "foundation"))  # the initial weights depend on the seed only
     policy = build_policy(cfg, suite)
     if weights.exists():
         saved = load_checkpoint(weights)
@@ -77,7 +78,6 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
         train = data.foundation(cfg.foundation_tasks)
         policy.state_norm.fit(train.obs["state"])
         policy.action_norm.fit(train.actions.flatten(0, 1))
-        torch.manual_seed(derive_seed(seed, "foundation"))
         ctx = TaskContext(stage=0, task="foundation", data=train, policy=policy,
                           foundation_loss=float("nan"), steps=cfg.foundation_steps)
         settings = TrainSettings(cfg.foundation_steps, cfg.batch_size, cfg.foundation_lr,

@@ -7,6 +7,8 @@ processes logging to one SQLite file do not race to create it.
 
 from __future__ import annotations
 
+import fcntl
+import logging
 import os
 import subprocess
 import sys
@@ -60,10 +62,16 @@ class Tracker:
         os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
         from mlflow.tracking import MlflowClient
 
-        Path(results_dir).mkdir(parents=True, exist_ok=True)
+        for name in ("mlflow", "alembic"):  # their INFO lines (table creation) are noise here
+            logging.getLogger(name).setLevel(logging.WARNING)
+        results = Path(results_dir)
+        results.mkdir(parents=True, exist_ok=True)
         self.uri = tracking_uri(results_dir)
-        self.client = _RetryOnLock(MlflowClient(tracking_uri=self.uri))
-        self.experiment_id = self._experiment(experiment, Path(results_dir).resolve() / "mlartifacts")
+        # Creating the client creates the SQLite schema: processes starting together take turns.
+        with open(results / ".mlflow.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            self.client = _RetryOnLock(MlflowClient(tracking_uri=self.uri))
+            self.experiment_id = self._experiment(experiment, results.resolve() / "mlartifacts")
 
     def _experiment(self, name: str, artifact_root: Path) -> str:
         """Get or create the experiment; fail in one line if the store cannot be reached."""
