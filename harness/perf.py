@@ -9,7 +9,6 @@ from __future__ import annotations
 import copy
 import json
 import os
-import resource
 import statistics
 import subprocess
 import sys
@@ -69,18 +68,28 @@ def bench_train(steps: int = 200, batch_size: int = 256) -> None:
               f"{1000 * total / steps:.1f} | {100 * (1 - inside / total):.1f}% (target < 10%) |")
 
 
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
 def _method_memory(name: str, steps: int) -> dict:
-    """Run in a fresh process: peak RSS growth while training, and the method's own state."""
+    """Run in a fresh process: peak resident memory growth from before the method exists to
+    the end of its training steps (its kept state, optimizer, activations), and its own state."""
     torch.set_num_threads(1)
     policy = _policy("default")
     foundation, task = synthetic_data(6000, 1, "foundation"), synthetic_data(6000, 2)
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    base = peak = _rss_mb()
     method, ctx = _ready_method(name, policy, foundation, task)
-    train_stage(ctx, method, TrainSettings(steps, 256, 3e-4), torch.Generator().manual_seed(0))
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    state = method.state_dict()
-    state_bytes = sum(t.numel() * t.element_size() for t in _tensors(state))
-    return {"peak_rss_growth_mb": (peak - base) / 1024, "state_mb": state_bytes / 2**20}
+
+    def sample(done: int) -> None:
+        nonlocal peak
+        peak = max(peak, _rss_mb())
+
+    train_stage(ctx, method, TrainSettings(steps, 256, 3e-4), torch.Generator().manual_seed(0),
+                after_step=sample)
+    state_bytes = sum(t.numel() * t.element_size() for t in _tensors(method.state_dict()))
+    return {"peak_rss_growth_mb": peak - base, "state_mb": state_bytes / 2**20}
 
 
 def _tensors(obj):
@@ -97,7 +106,7 @@ def _tensors(obj):
                              obj.instruction_table])
 
 
-def bench_methods(rounds: int = 7, steps: int = 20) -> None:
+def bench_methods(rounds: int = 15, steps: int = 20) -> None:
     """Step time of every method, interleaved round by round so machine drift cancels out."""
     names = ["sft"] + [n for n in method_names() if n != "sft"]
     foundation, task = synthetic_data(6000, 1, "foundation"), synthetic_data(6000, 2)
@@ -112,9 +121,11 @@ def bench_methods(rounds: int = 7, steps: int = 20) -> None:
     for r in range(rounds):
         for name in names:
             method, ctx = runs[name]
-            start = time.perf_counter()
-            train_stage(ctx, method, TrainSettings(steps, 256, 3e-4), torch.Generator().manual_seed(r))
-            times[name].append((time.perf_counter() - start) / steps)
+            timer = PhaseTimer()  # the steps only: not before_task/after_task (a Fisher, say)
+            train_stage(ctx, method, TrainSettings(steps, 256, 3e-4), torch.Generator().manual_seed(r),
+                        timer=timer)
+            step_time = sum(v for k, v in timer.seconds.items() if k != "other")
+            times[name].append(step_time / steps)
     memory = {}
     for name in names:
         out = subprocess.run([sys.executable, "-m", "harness.perf", "_memory", name],
@@ -122,8 +133,9 @@ def bench_methods(rounds: int = 7, steps: int = 20) -> None:
         memory[name] = json.loads(out.stdout.strip().splitlines()[-1])
     sft_time = statistics.median(times["sft"])
     sft_mem = max(memory["sft"]["peak_rss_growth_mb"], 1e-9)
-    print(f"methods on the default policy (batch 256; median of {rounds} interleaved rounds of "
-          f"{steps} steps; memory: peak RSS growth while training, in a fresh process each)")
+    print(f"methods on the default policy (batch 256; step time: median of {rounds} interleaved "
+          f"rounds of {steps} steps; memory: peak resident growth from before the method is built "
+          f"to the end of training, in a fresh process each)")
     print("| method | step ms | time vs sft | peak RSS growth MB | memory vs sft | state held MB |")
     print("|---|---|---|---|---|---|")
     for name in names:
