@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
 from suites import register_suite
 from suites.base import Observation, StepResult, TaskEnv, TaskTableSuite
 

@@ -12,7 +12,6 @@ robosuite's flat action vector is [robot0 (7), robot1 (7)] = [right, left]; the 
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -31,22 +30,11 @@ def to_robosuite_action(action: np.ndarray) -> np.ndarray:
     return np.concatenate([right, left])
 
 
-def _quiet_robosuite() -> None:
-    """robosuite logs a warning per unused controller part and per missing private macro file."""
-    logging.getLogger("robosuite").setLevel(logging.ERROR)
-    try:
-        from robosuite.utils.log_utils import ROBOSUITE_DEFAULT_LOGGER
-
-        ROBOSUITE_DEFAULT_LOGGER.setLevel(logging.ERROR)
-    except ImportError:  # pragma: no cover - other robosuite versions
-        pass
-
 
 def env_kwargs(cameras: bool, image_size: int) -> dict:
     """Keyword arguments shared by every robosuite env of the suite (20 Hz OSC_POSE deltas)."""
     from robosuite import load_composite_controller_config
 
-    _quiet_robosuite()
     return dict(
         robots=["Panda", "Panda"],
         env_configuration="parallel",

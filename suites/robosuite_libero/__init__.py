@@ -7,6 +7,7 @@ arena and object models. See README.md for the task table, state layout and expe
 
 from __future__ import annotations
 
+import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
 from suites import register_suite
 from suites.base import TaskEnv, TaskTableSuite
 from suites.robosuite_libero.tasks import TASKS
