@@ -143,9 +143,14 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     return result
 
 
+# settings that cannot change a run's results (where it is written, how it is parallelised)
+NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
+                  "torch_threads", "results_dir", "cache_dir")
+
+
 def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> str:
     """Everything a stage checkpoint depends on; a checkpoint with another key is not resumed."""
-    settings = {k: v for k, v in cfg.as_dict().items() if k not in ("progress", "seed", "seeds", "method")}
+    settings = {k: v for k, v in cfg.as_dict().items() if k not in NOT_IN_RUN_KEY}
     blob = json.dumps([settings, method.name, method.hyperparameters(), foundation_key],
                       sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]

@@ -21,6 +21,8 @@ def _bench(tmp_path, *args):
     (["steps_per_task=many"], ["'many'", "steps_per_task", "int"]),
     (["kapa=0.1"], ["'kapa'", "steps_per_task"]),
     (["stream_tasks=reach-v3"], ["'reach-v3'", "both"]),
+    (["GRID=kappa"], ["'kappa'", "key=v1,v2"]),
+    (["METHOD=consft", "variant=clipp"], ["'clipp'", "clip, dft, ratio"]),
 ])
 def test_bad_input_is_one_line_and_nonzero(tmp_path, args, expected):
     proc = _bench(tmp_path, *args)
