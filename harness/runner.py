@@ -143,9 +143,10 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     return result
 
 
-# settings that cannot change a run's results (where it is written, how it is parallelised)
+# settings that cannot change a run's results (where it is written, how rollouts are split);
+# torch_threads stays in: the summation order of a matrix product depends on it
 NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
-                  "torch_threads", "results_dir", "cache_dir")
+                  "results_dir", "cache_dir")
 
 
 def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> str:
