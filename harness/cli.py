@@ -102,7 +102,7 @@ def bench(args: list[str]) -> int:
     from harness.data import prepare_data
     from harness.evaluation import Evaluator
     from harness.foundation import load_or_train_foundation
-    from harness.reports import summary_table, write_run_outputs
+    from harness.run_outputs import summary_table, write_run_outputs
     from harness.stages import eval_settings
     from harness.tracking import Tracker, git_commit, package_versions
 

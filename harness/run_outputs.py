@@ -1,4 +1,6 @@
-"""Per-run outputs on disk (CSV, JSON, YAML, a heatmap PNG) and the printed summary."""
+"""One run's files on disk (CSV, JSON, YAML, a heatmap PNG) and the summary printed at the end.
+
+Comparisons across methods and seeds are `harness/report/`, rebuilt from MLflow."""
 
 from __future__ import annotations
 
