@@ -45,18 +45,23 @@ def cell_text(cell: Interval) -> tuple[str, str]:
     return _num(cell.mean), f"[{_num(cell.low)}, {_num(cell.high)}]"
 
 
+def _cells(summary: RowSummary, metrics, best: dict, bold) -> list[tuple[str, str]]:
+    """(mean, interval) text per metric, the mean passed through `bold` where it is the best."""
+    out = []
+    for m in metrics:
+        mean, interval = cell_text(summary.cells[m.key])
+        out.append((bold(mean) if summary.label in best[m.key] else mean, interval))
+    return out
+
+
 def markdown_table(summaries: list[RowSummary]) -> str:
     metrics = shown_metrics(summaries)
     best = {m.key: best_labels(summaries, m) for m in metrics}
     lines = ["| method | seeds | " + " | ".join(f"{m.title} {arrow(m)}" for m in metrics) + " |",
              "|---|---|" + "---|" * len(metrics)]
     for s in summaries:
-        cells = []
-        for m in metrics:
-            mean, interval = cell_text(s.cells[m.key])
-            if s.label in best[m.key]:
-                mean = f"**{mean}**"
-            cells.append(f"{mean} {interval}".strip())
+        cells = [f"{mean} {interval}".strip()
+                 for mean, interval in _cells(s, metrics, best, lambda v: f"**{v}**")]
         lines.append(f"| {s.label} | {s.row.seeds_text()} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -96,12 +101,8 @@ def latex_table(summaries: list[RowSummary]) -> str:
              "method & seeds & " + " & ".join(f"{_tex(m.title)} {arrows[arrow(m)]}" for m in metrics)
              + r" \\", r"\midrule"]
     for s in summaries:
-        cells = []
-        for m in metrics:
-            mean, interval = cell_text(s.cells[m.key])
-            if s.label in best[m.key]:
-                mean = rf"\textbf{{{mean}}}"
-            cells.append(mean + (rf" {{\scriptsize {interval}}}" if interval else ""))
+        cells = [mean + (rf" {{\scriptsize {interval}}}" if interval else "")
+                 for mean, interval in _cells(s, metrics, best, lambda v: rf"\textbf{{{v}}}")]
         lines.append(f"{_tex(s.label)} & {_tex(s.row.seeds_text())} & " + " & ".join(cells)
                      + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
