@@ -116,10 +116,12 @@ class ConSFT(Method):
     def loss(self, per_sample, batch, policy):
         c = self.config
         if c.variant == "ratio":
-            old = self._old_loss[batch["index"]]
-            ratio = torch.exp((old - per_sample) / self.tau)
-            objective = torch.minimum(ratio, ratio.clamp(1 - c.eps, 1 + c.eps))
-            r = ratio.detach()
+            log_ratio = (self._old_loss[batch["index"]] - per_sample) / self.tau
+            # min(r, clip(r, 1-eps, 1+eps)) is min(r, 1+eps) for a positive advantage; clamping
+            # the log first gives the same value and zero gradient past the clip without ever
+            # forming exp(large) = inf, whose backward would be 0 * inf = NaN.
+            objective = torch.exp(log_ratio.clamp(max=math.log1p(c.eps)))
+            r = torch.exp(log_ratio.detach())
             stats = {"consft/ratio_mean": r.mean().item(),
                      "consft/frac_clipped": (r > 1 + c.eps).float().mean().item(),
                      "consft/frac_below": (r < 1 - c.eps).float().mean().item()}

@@ -166,3 +166,14 @@ def test_er_batches_hold_the_configured_mix(tiny_policy):
     assert from_old == 16 and len(batch["actions"]) == 64
     method.after_task(_ctx(tiny_policy, new, stage=1))
     assert len(method.buffer) == 40 and method.buffer.task_names == ["old", "new"]
+
+
+def test_consft_ratio_stays_finite_when_the_loss_falls_far_below_its_start():
+    method = ConSFT(ConSFTConfig(variant="ratio", kappa=1.0, eps=0.2))
+    method.l_ref = 0.05  # (old - l) / tau = 74: exp would overflow float32
+    method._old_loss = torch.tensor([3.8, 0.5])
+    per_sample = torch.tensor([0.1, 0.45], requires_grad=True)
+    loss, _ = method.loss(per_sample, {"index": torch.arange(2)}, None)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(per_sample.grad).all()
+    assert per_sample.grad[0].item() == 0.0 and per_sample.grad[1].item() != 0.0
