@@ -172,7 +172,7 @@ def test_consft_ratio_stays_finite_when_the_loss_falls_far_below_its_start():
     method = ConSFT(ConSFTConfig(variant="ratio", kappa=1.0, eps=0.2))
     method.l_ref = 0.05  # (old - l) / tau = 74: exp would overflow float32
     method._old_loss = torch.tensor([3.8, 0.5])
-    per_sample = torch.tensor([0.1, 0.45], requires_grad=True)
+    per_sample = torch.tensor([0.1, 0.6], requires_grad=True)  # r = exp(74) and exp(-2)
     loss, _ = method.loss(per_sample, {"index": torch.arange(2)}, None)
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(per_sample.grad).all()
