@@ -113,6 +113,8 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
         cfg.eval_episodes = max(cfg.eval_episodes, 50)
         cfg.seeds = max(cfg.seeds, 3)
     cfg.profile = profile
+    if profile in ("tiny", "paper"):  # its own results directory and MLflow experiment
+        cfg.name = f"{cfg.name}-{profile}"
 
 
 def coerce(key: str, value: Any, annotation: Any) -> Any:

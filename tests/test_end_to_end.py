@@ -19,7 +19,7 @@ def tiny_run(tmp_path_factory):
 
 def test_outputs_on_disk(tiny_run):
     root, _ = tiny_run
-    run = root / "results" / "mw-quick" / "sft" / "seed0"
+    run = root / "results" / "mw-quick-tiny" / "sft" / "seed0"
     for name in ("success_matrix.csv", "metrics.json", "config.yaml", "success_matrix.png",
                  "heldout_loss.csv", "updates_per_layer.csv"):
         assert (run / name).stat().st_size > 0, name
@@ -48,7 +48,7 @@ def test_mlflow_has_parent_and_child_runs(tiny_run):
 
     root, _ = tiny_run
     client = MlflowClient(tracking_uri=f"sqlite:///{root}/results/mlflow.db")
-    experiment = client.get_experiment_by_name("mw-quick")
+    experiment = client.get_experiment_by_name("mw-quick-tiny")
     runs = client.search_runs([experiment.experiment_id])
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
@@ -65,7 +65,7 @@ def test_mlflow_has_parent_and_child_runs(tiny_run):
 
 def test_second_run_reuses_demos_foundation_and_stages(tiny_run, monkeypatch):
     root, args = tiny_run
-    before = (root / "results/mw-quick/sft/seed0/success_matrix.csv").read_text()
+    before = (root / "results/mw-quick-tiny/sft/seed0/success_matrix.csv").read_text()
 
     def fail(*a, **k):
         raise AssertionError("work was redone instead of reused")
@@ -74,4 +74,4 @@ def test_second_run_reuses_demos_foundation_and_stages(tiny_run, monkeypatch):
     monkeypatch.setattr("harness.foundation.train_stage", fail)
     monkeypatch.setattr("harness.runner.train_stage", fail)
     assert main(args) == 0
-    assert (root / "results/mw-quick/sft/seed0/success_matrix.csv").read_text() == before
+    assert (root / "results/mw-quick-tiny/sft/seed0/success_matrix.csv").read_text() == before

@@ -25,7 +25,7 @@ def _run(cmd, env=None, timeout=300):
 
 
 def _outputs(tmp, method="er", seed=0):
-    run = Path(tmp) / "results" / "mw-quick" / method / f"seed{seed}"
+    run = Path(tmp) / "results" / "mw-quick-tiny" / method / f"seed{seed}"
     return {name: (run / name).read_text() for name in OUTPUTS}
 
 
@@ -50,10 +50,10 @@ def reference(tmp_path_factory):
 
 def test_killed_runs_resume_to_the_same_results(tmp_path, reference):
     # killed while generating demos, while training the foundation, and mid-stream
-    _kill_when(_cmd(tmp_path), "[retain] mw-quick", 1.5)
+    _kill_when(_cmd(tmp_path), "[retain] mw-quick-tiny", 1.5)
     _kill_when(_cmd(tmp_path), "demos ready", 0.5)
     _kill_when(_cmd(tmp_path), "stage 1 (", 0.3)
-    assert (tmp_path / "results/mw-quick/er/seed0/stages/stage_1.pt").exists()
+    assert (tmp_path / "results/mw-quick-tiny/er/seed0/stages/stage_1.pt").exists()
     proc = _run(_cmd(tmp_path))
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert _outputs(tmp_path) == reference[1]
@@ -95,7 +95,7 @@ def test_nan_loss_stops_naming_method_stage_and_step_and_keeps_the_last_stage(tm
     assert proc.returncode != 0
     assert proc.stderr.strip().count("\n") == 0
     assert "'nan_at_stage2'" in proc.stderr and "stage 2" in proc.stderr and "step 0" in proc.stderr
-    run = tmp_path / "results/mw-quick/nan_at_stage2/seed0"
+    run = tmp_path / "results/mw-quick-tiny/nan_at_stage2/seed0"
     assert (run / "stages/stage_1.pt").exists() and not (run / "stages/stage_2.pt").exists()
 
 
@@ -120,7 +120,7 @@ def test_three_processes_logging_to_one_store_lose_no_run(tmp_path, reference):
         _, err = p.communicate(timeout=300)
         assert p.returncode == 0, err[-2000:]
     client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/results/mlflow.db")
-    runs = client.search_runs([client.get_experiment_by_name("mw-quick").experiment_id])
+    runs = client.search_runs([client.get_experiment_by_name("mw-quick-tiny").experiment_id])
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
     assert sorted(r.data.tags["seed"] for r in children) == ["0", "1", "2"]
     assert all(r.info.status == "FINISHED" for r in runs) and len(runs) == 6

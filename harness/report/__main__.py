@@ -23,8 +23,11 @@ def settings_from(args: list[str]) -> ReportSettings:
     profile = given.get("PROFILE", "")
     if profile and profile not in PROFILE_BENCHMARKS:
         raise RetainError(f"unknown profile {profile!r}; valid: {', '.join(PROFILE_BENCHMARKS)}")
-    experiment = (given.get("EXPERIMENT") or given.get("BENCH")
-                  or PROFILE_BENCHMARKS.get(profile, "mw-quick"))
+    experiment = given.get("EXPERIMENT")
+    if not experiment:  # named as `make bench` names it: tiny and paper runs get a suffix
+        experiment = given.get("BENCH") or PROFILE_BENCHMARKS.get(profile, "mw-quick")
+        if profile in ("tiny", "paper"):
+            experiment = f"{experiment}-{profile}"
     return ReportSettings(experiment=experiment,
                           results_dir=given.get("results_dir") or "results",
                           log_run=coerce("log_run", given.get("log_run", "1"), bool))
