@@ -14,6 +14,7 @@ export PYTHONUNBUFFERED := 1
 
 # Command-line variables (METHOD=..., steps_per_task=...) become overrides for the harness.
 OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v))))
+quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
 .PHONY: bench compare sweep report test lint ui venv clean-cache bench-train bench-methods bench-eval
 
@@ -26,23 +27,23 @@ $(STAMP): requirements.lock pyproject.toml
 venv: $(STAMP)
 
 bench: $(STAMP)
-	$(PY) -m harness bench $(OVERRIDES)
+	$(PY) -m harness bench $(call quote,$(OVERRIDES))
 
 REPORT_ARGS := $(filter EXPERIMENT=% BENCH=% PROFILE=% results_dir=% log_run=%,$(OVERRIDES))
 
 # every method on the same foundation, then the report: make compare BENCH=mw-quick SEEDS=3
 compare: $(STAMP)
-	$(PY) -m harness bench METHOD=all $(filter-out METHOD=%,$(OVERRIDES))
-	$(PY) -m harness.report $(REPORT_ARGS)
+	$(PY) -m harness bench METHOD=all $(call quote,$(filter-out METHOD=%,$(OVERRIDES)))
+	$(PY) -m harness.report $(call quote,$(REPORT_ARGS))
 
 # one run per grid point and seed, then the report: make sweep METHOD=consft GRID="kappa=0.1,1.0"
 sweep: $(STAMP)
-	$(PY) -m harness bench $(OVERRIDES)
-	$(PY) -m harness.report $(REPORT_ARGS)
+	$(PY) -m harness bench $(call quote,$(OVERRIDES))
+	$(PY) -m harness.report $(call quote,$(REPORT_ARGS))
 
 # tables and plots rebuilt from the MLflow store: make report [EXPERIMENT=mw-quick]
 report: $(STAMP)
-	$(PY) -m harness.report $(REPORT_ARGS)
+	$(PY) -m harness.report $(call quote,$(REPORT_ARGS))
 
 bench-train: $(STAMP)
 	$(PY) -m harness.perf train
