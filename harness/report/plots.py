@@ -164,7 +164,7 @@ def update_distribution(path: Path, summaries: list[RowSummary], benchmark: str)
             bars = ax.bar(x, s.updates.fractions, width, color=color[s.label], label=s.label)
             if len(rows) <= 4:  # beyond that the labels run into each other
                 ax.bar_label(bars, [f"{v:.0%}" for v in s.updates.fractions], fontsize=7)
-        ax.set_xticks(range(len(bins)), bins)
+        ax.set_xticks(range(len(bins)), [b.replace(" - ", "-\n") for b in bins], fontsize=8)
         ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     ax.set_ylim(0, 1.08)
     ax.set_xlabel("|delta theta| / RMS(theta_0) of its tensor, theta_k vs theta_0")
