@@ -6,7 +6,6 @@ profile, method, every override, every task name, and the tracking store.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import dataclasses
 import itertools
@@ -102,9 +101,9 @@ def bench(args: list[str]) -> int:
     from harness.data import prepare_data
     from harness.evaluation import Evaluator
     from harness.foundation import load_or_train_foundation
-    from harness.run_outputs import summary_table, write_run_outputs
+    from harness.run_outputs import summary_table
     from harness.stages import eval_settings
-    from harness.tracking import Tracker, git_commit, package_versions
+    from harness.tracking import BatchedMetrics, Tracker, git_commit, package_versions
 
     p = plan(args)
     cfg = p.cfg
@@ -113,12 +112,9 @@ def bench(args: list[str]) -> int:
     provenance = {"git_commit": git_commit(), "versions": package_versions(),
                   "command": " ".join(args), "seeds": cfg.seed_list()}
     parent = tracker.start_run(f"{cfg.name}:{cfg.method}", tags={"benchmark": cfg.name})
-    tracker.log_params(parent, {**{f"config.{k}": v for k, v in cfg.as_dict().items()},
-                                "git_commit": provenance["git_commit"],
-                                **{f"version.{k}": v for k, v in provenance["versions"].items()}})
+    tracker.log_params(parent, _provenance_params(cfg, provenance))
     start = time.time()
     status = "FAILED"
-    stack = contextlib.ExitStack()
     try:
         suite = get_suite(cfg.suite)
         print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
@@ -127,32 +123,29 @@ def bench(args: list[str]) -> int:
         data = prepare_data(cfg, suite)
         print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
         results = []
-        evaluator = stack.enter_context(
-            Evaluator(suite, eval_settings(cfg), cfg.workers(), cfg.torch_threads))
-        for seed in cfg.seed_list():
-            foundation = load_or_train_foundation(
-                cfg, suite, data, seed, evaluator,
-                log=_batched_logger(tracker, parent, prefix=f"foundation_seed{seed}/"))
-            print(f"[retain] seed {seed}: foundation ready, stage-0 foundation success "
-                  f"{_foundation_success(cfg, foundation.stage0):.3f} ({time.time() - start:.0f}s)",
-                  flush=True)
-            for variant in p.variants:
-                results.append(_run_one(variant, suite, data, foundation, seed, evaluator,
-                                        tracker, parent, provenance, write_run_outputs))
-                r = results[-1]
-                print(f"[retain] {variant.label} seed {seed}: foundation success "
-                      f"{r.metrics['foundation_success_stage0']:.3f} -> {r.metrics['retention']:.3f}, "
-                      f"plasticity {r.metrics['plasticity']:.3f} ({time.time() - start:.0f}s)",
-                      flush=True)
-        table = summary_table(results)
-        print("\n" + table)
+        with Evaluator(suite, eval_settings(cfg), cfg.workers(), cfg.torch_threads) as evaluator:
+            for seed in cfg.seed_list():
+                curve = BatchedMetrics(tracker, parent, prefix=f"foundation_seed{seed}/")
+                foundation = load_or_train_foundation(cfg, suite, data, seed, evaluator, log=curve)
+                curve.flush()
+                print(f"[retain] seed {seed}: foundation ready, stage-0 foundation success "
+                      f"{_foundation_success(cfg, foundation.stage0):.3f} "
+                      f"({time.time() - start:.0f}s)", flush=True)
+                for variant in p.variants:
+                    r = _run_one(variant, suite, data, foundation, seed, evaluator, tracker,
+                                 parent, provenance)
+                    results.append(r)
+                    print(f"[retain] {variant.label} seed {seed}: foundation success "
+                          f"{r.metrics['foundation_success_stage0']:.3f} -> "
+                          f"{r.metrics['retention']:.3f}, plasticity {r.metrics['plasticity']:.3f} "
+                          f"({time.time() - start:.0f}s)", flush=True)
+        print("\n" + summary_table(results))
         for r in results:
             print(f"  {r.method} seed {r.seed}: {r.run_dir}/")
         print(f"  MLflow: {tracker.uri} (experiment {cfg.name!r}); `make ui` to browse")
         status = "FINISHED"
         return 0
     finally:
-        stack.close()
         tracker.end_run(parent, status)
 
 
@@ -160,58 +153,54 @@ def _foundation_success(cfg: BenchConfig, record) -> float:
     return sum(record.success[t] for t in cfg.foundation_tasks) / len(cfg.foundation_tasks)
 
 
-class _batched_logger:
-    """Collects per-step metrics and sends them to MLflow a few hundred rows at a time."""
-
-    def __init__(self, tracker, run_id: str, prefix: str = "", every: int = 200):
-        self.tracker, self.run_id, self.prefix, self.every = tracker, run_id, prefix, every
-        self.rows: list[tuple[int, dict[str, float]]] = []
-
-    def __call__(self, step: int, metrics: dict[str, float]) -> None:
-        self.rows.append((step, {self.prefix + k: v for k, v in metrics.items()}))
-        if len(self.rows) >= self.every:
-            self.flush()
-
-    def flush(self) -> None:
-        if self.rows:
-            self.tracker.log_metric_rows(self.run_id, self.rows)
-            self.rows = []
+def _provenance_params(cfg: BenchConfig, provenance: dict) -> dict:
+    """The resolved config, git commit and package versions, as MLflow params."""
+    return {**{f"config.{k}": v for k, v in cfg.as_dict().items()},
+            "git_commit": provenance["git_commit"],
+            **{f"version.{k}": v for k, v in provenance["versions"].items()}}
 
 
 def _run_one(variant: Variant, suite, data, foundation, seed, evaluator, tracker, parent,
-             provenance, write_outputs):
+             provenance):
+    from harness.run_outputs import write_run_outputs
     from harness.runner import run_stream
+    from harness.tracking import BatchedMetrics
 
     cfg, method = variant.cfg, variant.method
     tags = {"method": method.name, "seed": str(seed), "benchmark": cfg.name, "label": variant.label}
     if variant.point:
         tags["sweep_point"] = variant.point
     child = tracker.start_run(f"{variant.label}/seed{seed}", parent_id=parent, tags=tags)
-    tracker.log_params(child, {**{f"config.{k}": v for k, v in cfg.as_dict().items()},
+    tracker.log_params(child, {**_provenance_params(cfg, provenance),
                                **{f"method.{k}": v for k, v in method.hyperparameters().items()},
-                               "method": method.name, "seed": seed,
-                               "git_commit": provenance["git_commit"],
-                               **{f"version.{k}": v for k, v in provenance["versions"].items()}})
-    logger = _batched_logger(tracker, child)
+                               "method": method.name, "seed": seed})
+    logger = BatchedMetrics(tracker, child)
     status = "FAILED"
     try:
-        stage_rows = [(0, _stage_metrics(cfg, foundation.stage0))]
+        logged: set[int] = set()
 
-        def on_stage(record):
-            print(f"[retain] {variant.label} seed {seed}: stage {record.stage} ({record.task}) done, "
-                  f"foundation success {_foundation_success(cfg, record):.3f}", flush=True)
-            logger.flush()
+        def log_stage(record) -> None:
+            logged.add(record.stage)
             tracker.log_metric_rows(child, [(record.stage, _stage_metrics(cfg, record))])
             if record.curve:
                 tracker.log_metric_rows(child, [(n, {f"curve_success/{record.task}": v})
                                                 for n, v in zip(record.curve_steps, record.curve)])
 
-        tracker.log_metric_rows(child, stage_rows)
+        def on_stage(record) -> None:
+            print(f"[retain] {variant.label} seed {seed}: stage {record.stage} ({record.task}) done, "
+                  f"foundation success {_foundation_success(cfg, record):.3f}", flush=True)
+            logger.flush()
+            log_stage(record)
+
+        log_stage(foundation.stage0)
         result = run_stream(cfg, suite, data, foundation, method, seed, evaluator, logger, on_stage,
                             label=variant.label)
+        for record in result.stages:  # stages resumed from checkpoints were not logged yet
+            if record.stage not in logged:
+                log_stage(record)
         logger.flush()
         tracker.log_metrics(child, result.metrics, step=len(cfg.stream_tasks))
-        paths = write_outputs(cfg, result, provenance)
+        paths = write_run_outputs(cfg, result, provenance)
         for path in paths.values():
             tracker.log_artifact(child, path)
         status = "FINISHED"

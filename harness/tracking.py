@@ -128,6 +128,24 @@ class Tracker:
         self.client.set_terminated(run_id, status)
 
 
+class BatchedMetrics:
+    """Collects per-step metrics and sends them to MLflow a few hundred rows at a time."""
+
+    def __init__(self, tracker: Tracker, run_id: str, prefix: str = "", every: int = 200):
+        self.tracker, self.run_id, self.prefix, self.every = tracker, run_id, prefix, every
+        self.rows: list[tuple[int, dict[str, float]]] = []
+
+    def __call__(self, step: int, metrics: dict[str, float]) -> None:
+        self.rows.append((step, {self.prefix + k: v for k, v in metrics.items()}))
+        if len(self.rows) >= self.every:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.rows:
+            self.tracker.log_metric_rows(self.run_id, self.rows)
+            self.rows = []
+
+
 class _RetryOnLock:
     """Calls through to MlflowClient, retrying while another process holds the SQLite lock."""
 

@@ -75,3 +75,11 @@ def test_second_run_reuses_demos_foundation_and_stages(tiny_run, monkeypatch):
     monkeypatch.setattr("harness.runner.train_stage", fail)
     assert main(args) == 0
     assert (root / "results/mw-quick-tiny/sft/seed0/success_matrix.csv").read_text() == before
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=f"sqlite:///{root}/results/mlflow.db")
+    runs = client.search_runs([client.get_experiment_by_name("mw-quick-tiny").experiment_id],
+                              order_by=["attribute.start_time DESC"])
+    resumed = next(r for r in runs if "mlflow.parentRunId" in r.data.tags)
+    history = client.get_metric_history(resumed.info.run_id, "foundation_success")
+    assert sorted(m.step for m in history) == [0, 1, 2]  # stages from checkpoints are logged too
