@@ -57,6 +57,7 @@ class BenchConfig:
     progress: bool = True
     torch_threads: int = 1  # intra-op threads per process; small CPU batches are slower with more
     eval_workers: int = 0  # evaluation processes; 0 means one per core
+    eval_envs_per_task: int = 2  # simulators per task and worker (memory against batching)
     learning_curve_every: int = 0  # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
 
     def workers(self) -> int:

@@ -9,6 +9,7 @@ are batched or split across worker processes.
 from __future__ import annotations
 
 import os
+from collections import deque
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -28,6 +29,7 @@ class EvalSettings:
     n_action_steps: int
     cameras: bool = False
     image_size: int = 84
+    envs_per_task: int = 2  # simulators per task and worker; their episodes run one after another
 
 
 @dataclass(frozen=True)
@@ -48,23 +50,18 @@ class TaskEvaluation:
 
 
 class EnvCache:
-    """Simulators reused across stages: building one can take longer than an episode."""
+    """Simulators kept across stages, at most `envs_per_task` per task: building one can take
+    longer than an episode, and one per episode would hold gigabytes (robosuite's ~85 MB each)."""
 
     def __init__(self, suite: Suite, settings: EvalSettings):
         self.suite, self.settings = suite, settings
         self.envs: dict[str, list] = {}
 
-    def take(self, episodes: list[EvalEpisode]) -> list:
-        used: dict[str, int] = {}
-        out = []
-        for ep in episodes:
-            pool = self.envs.setdefault(ep.task, [])
-            i = used.get(ep.task, 0)
-            if i == len(pool):
-                pool.append(self.suite.make_env(ep.task, self.settings.cameras, self.settings.image_size))
-            out.append(pool[i])
-            used[ep.task] = i + 1
-        return out
+    def for_task(self, task: str, n: int) -> list:
+        pool = self.envs.setdefault(task, [])
+        while len(pool) < n:
+            pool.append(self.suite.make_env(task, self.settings.cameras, self.settings.image_size))
+        return pool[:n]
 
     def close(self) -> None:
         for pool in self.envs.values():
@@ -73,40 +70,63 @@ class EnvCache:
         self.envs.clear()
 
 
+@dataclass
+class _Slot:
+    """One simulator running its task's episodes one after another."""
+
+    env: object
+    task: str
+    episode: int | None = None  # index into the episode list; None when the slot is done
+    t: int = 0
+    obs: dict | None = None
+    plan: np.ndarray | None = None
+    noise: torch.Generator | None = None
+
+
 @torch.no_grad()
 def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
             settings: EvalSettings, noise_seed: int, envs: EnvCache) -> list[tuple[bool, int]]:
-    """(success, steps) per episode, all episodes stepped in lockstep."""
+    """(success, steps) per episode. Slots step in lockstep; every slot that needs a new action
+    chunk gets it from one batched policy call; a finished episode's slot starts the next
+    episode of its task at once."""
     policy.eval()
-    n = len(episodes)
-    chunk_size, action_dim = policy.config.chunk_size, policy.config.action_dim
-    sims = envs.take(episodes)
-    obs = [env.reset(ep.seed) for env, ep in zip(sims, episodes)]
-    generators = [generator("eval-noise", noise_seed, ep.task, ep.seed) for ep in episodes]
-    rows = torch.as_tensor(np.stack([instructions[ep.task] for ep in episodes]), dtype=torch.float32)
-    done, success, steps = [False] * n, [False] * n, [0] * n
-    plans: list[np.ndarray | None] = [None] * n
-    for t in range(settings.max_episode_steps):
-        if t % settings.n_action_steps == 0:
-            live = [i for i in range(n) if not done[i]]
-            if not live:
-                break
-            batch = {k: torch.as_tensor(np.stack([obs[i][k] for i in live])) for k in obs[live[0]]}
-            batch["instruction"] = rows[live]
-            noise = torch.stack([torch.randn(chunk_size, action_dim, generator=generators[i])
-                                 for i in live])
-            chunks = policy.sample_actions(batch, noise=noise).numpy()
-            for j, i in enumerate(live):
-                plans[i] = chunks[j]
-        for i, env in enumerate(sims):
-            if done[i]:
-                continue
-            result = env.step(plans[i][t % settings.n_action_steps])
-            steps[i] += 1
-            obs[i] = result.obs
-            if result.success:
-                success[i] = done[i] = True
-    return list(zip(success, steps))
+    chunk_shape = (policy.config.chunk_size, policy.config.action_dim)
+    queues: dict[str, deque[int]] = {}
+    for i, ep in enumerate(episodes):
+        queues.setdefault(ep.task, deque()).append(i)
+    slots = [_Slot(env, task) for task, queue in queues.items()
+             for env in envs.for_task(task, min(len(queue), settings.envs_per_task))]
+    outcomes: list[tuple[bool, int] | None] = [None] * len(episodes)
+
+    def start_next(slot: _Slot) -> None:
+        queue = queues[slot.task]
+        slot.episode = queue.popleft() if queue else None
+        if slot.episode is not None:
+            ep = episodes[slot.episode]
+            slot.t, slot.obs = 0, slot.env.reset(ep.seed)
+            slot.noise = generator("eval-noise", noise_seed, ep.task, ep.seed)
+
+    for slot in slots:
+        start_next(slot)
+    while True:
+        live = [s for s in slots if s.episode is not None]
+        if not live:
+            break
+        need = [s for s in live if s.t % settings.n_action_steps == 0]
+        if need:
+            batch = {k: torch.as_tensor(np.stack([s.obs[k] for s in need])) for k in need[0].obs}
+            batch["instruction"] = torch.as_tensor(np.stack([instructions[s.task] for s in need]))
+            noise = torch.stack([torch.randn(chunk_shape, generator=s.noise) for s in need])
+            for s, chunk in zip(need, policy.sample_actions(batch, noise=noise).numpy()):
+                s.plan = chunk
+        for s in live:
+            result = s.env.step(s.plan[s.t % settings.n_action_steps])
+            s.t += 1
+            s.obs = result.obs
+            if result.success or s.t >= settings.max_episode_steps:
+                outcomes[s.episode] = (result.success, s.t)
+                start_next(s)
+    return outcomes
 
 
 def evaluation_episodes(suite_name: str, tasks: list[str], n: int) -> list[EvalEpisode]:

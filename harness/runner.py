@@ -146,7 +146,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
 # settings that cannot change a run's results (where it is written, how rollouts are split);
 # torch_threads stays in: the summation order of a matrix product depends on it
 NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
-                  "results_dir", "cache_dir")
+                  "eval_envs_per_task", "results_dir", "cache_dir")
 
 
 def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> str:
