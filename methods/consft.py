@@ -50,7 +50,7 @@ REFERENCES = ("foundation", "quantile")
 @dataclass
 class ConSFTConfig(MethodConfig):
     variant: str = "clip"
-    kappa: float = 1.0  # temperature tau = kappa * l_ref
+    kappa: float = 4.0  # temperature tau = kappa * l_ref (sweep: docs/methods.md)
     w_min: float = 0.1  # floor on the weight (clip variant)
     reference: str = "foundation"  # where l_ref comes from
     quantile: float = 0.5  # with reference=quantile

@@ -20,7 +20,7 @@ from methods.base import Method, MethodConfig, TaskContext
 
 @dataclass
 class EWCConfig(MethodConfig):
-    strength: float = 1000.0  # lambda
+    strength: float = 1e4  # lambda (sweep: docs/methods.md)
     decay: float = 0.9  # gamma: how much of the earlier Fisher survives each task
     fisher_samples: int = 1024
     fisher_batch: int = 128
