@@ -99,7 +99,7 @@ def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -
 
 def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
     """One point per row (error bars: 95% CI); SFT's learning-rate sweep as the frontier line."""
-    fig = Figure(figsize=(7.5, 6))
+    fig = Figure(figsize=(10, 6))
     ax = fig.add_subplot()
     color = colors(summaries)
     for s in summaries:
@@ -123,7 +123,7 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
     ax.set_ylabel("retention (foundation success after the last stage)")
     ax.set_title(f"{benchmark}: plasticity vs retention (up and right is better)", fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower left")
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     save(fig, path)
 
