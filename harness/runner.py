@@ -80,7 +80,6 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     policy.load_state_dict(foundation.policy_state)
     theta0 = {k: v.clone() for k, v in foundation.policy_state.items()}
     stages = [foundation.stage0]
-    foundation_data = data.foundation(cfg.foundation_tasks)
 
     def context(stage: int, task: str, train) -> TaskContext:
         return TaskContext(stage=stage, task=task, data=train, policy=policy,
@@ -88,8 +87,8 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
 
     run_key = run_settings_key(cfg, method, foundation.key)
     resumed = _last_finished(checkpoints, len(cfg.stream_tasks), run_key)
-    if resumed is None:
-        method.after_task(context(0, "foundation", foundation_data))
+    if resumed is None:  # what a method keeps from stage 0 (a buffer, a Fisher) it takes now
+        method.after_task(context(0, "foundation", data.foundation(cfg.foundation_tasks)))
     else:
         saved = load_checkpoint(checkpoints / f"stage_{resumed}.pt")
         policy.load_state_dict(saved["policy"])
