@@ -12,10 +12,11 @@ import re
 from dataclasses import dataclass
 
 from harness.report.runs import RunRecord
+from harness.runner import NOT_IN_RUN_KEY
 
-# config fields that do not change what a run measures (or name the method/seed themselves)
-NOT_SETTINGS = {"seed", "seeds", "method", "method_params", "progress", "results_dir", "cache_dir",
-                "torch_threads"}
+# config fields that do not change what a run measures (the runner's own list: where a run is
+# written, how its rollouts are split), or that name the method and seed themselves
+NOT_SETTINGS = set(NOT_IN_RUN_KEY) | {"method_params", "torch_threads"}
 
 
 @dataclass(frozen=True)

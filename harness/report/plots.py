@@ -153,6 +153,7 @@ def _err(cell) -> np.ndarray | None:
 def update_distribution(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
     """Grouped bars: fraction of all trainable scalars per bin of |delta theta| / RMS(theta_0)."""
     rows = [s for s in summaries if s.updates is not None]
+    rows = [s for s in rows if s.updates.bins == rows[0].updates.bins]  # runs of older versions
     fig = Figure(figsize=(8, 4.5))
     ax = fig.add_subplot()
     color = colors(summaries)
