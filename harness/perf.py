@@ -146,14 +146,18 @@ def bench_methods(rounds: int = 15, steps: int = 20) -> None:
     print("target: consft within 1.05x of sft in time, and no parameter-sized state")
 
 
+_RAW_ENVS: dict = {}  # per worker process, kept between calls like the evaluator's
+
+
 def _raw_expert_share(suite_name: str, episodes, max_steps: int) -> int:
     from suites import get_suite
 
     suite = get_suite(suite_name)
-    envs = {}
     steps = 0
     for ep in episodes:
-        env = envs.setdefault(ep.task, suite.make_env(ep.task))
+        if ep.task not in _RAW_ENVS:
+            _RAW_ENVS[ep.task] = suite.make_env(ep.task)
+        env = _RAW_ENVS[ep.task]
         env.reset(ep.seed)
         for _ in range(max_steps):
             steps += 1
@@ -171,9 +175,9 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200) -> No
     settings = EvalSettings(episodes, max_steps, n_action_steps=4)
     ctx = get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=ctx) as pool:  # warm: imports and env builds
-        list(pool.map(_raw_expert_share, ["metaworld"] * workers, [eps[:1]] * workers, [1] * workers))
-        start = time.perf_counter()
         shares = [eps[i::workers] for i in range(workers)]
+        list(pool.map(_raw_expert_share, ["metaworld"] * workers, shares, [1] * workers))
+        start = time.perf_counter()
         raw_steps = sum(pool.map(_raw_expert_share, ["metaworld"] * workers, shares,
                                  [max_steps] * workers))
         raw_time = time.perf_counter() - start
