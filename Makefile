@@ -55,7 +55,7 @@ bench-eval: $(STAMP)
 	$(PY) -m harness.perf eval $(or $(WORKERS),2)
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadfile -p no:warnings tests
+	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings tests
 
 lint: $(STAMP)
 	$(PY) -m ruff check harness methods suites policies tests
