@@ -119,9 +119,9 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
 
 
 def coerce(key: str, value: Any, annotation: Any) -> Any:
-    """Turn a YAML or command-line value into the field's type, or fail naming both."""
-    if isinstance(annotation, str):
-        annotation = eval(annotation, vars(typing) | {"Any": Any})  # noqa: S307 - our own annotations
+    """Turn a YAML or command-line value into the field's type, or fail naming both.
+
+    `annotation` is a resolved type (`typing.get_type_hints`), not its string form."""
     origin = typing.get_origin(annotation)
     try:
         if annotation is bool:
