@@ -24,6 +24,7 @@ import numpy as np
 from harness.atomic import atomic_path
 from harness.errors import DemoFileError
 from suites import Suite, episode_seeds
+from suites.base import run_expert_episode
 
 FORMAT_VERSION = 1
 MAX_ATTEMPTS_PER_DEMO = 4  # experts fail ~5% of the time; give up well before looping forever
@@ -63,19 +64,11 @@ class DemoSpec:
 
 def rollout_expert(suite: Suite, env, seed: int, max_steps: int) -> Episode | None:
     """One expert episode from `reset(seed)`; None unless it succeeds within `max_steps`."""
-    obs = env.reset(seed)
-    observations, actions = [], []
-    for _ in range(max_steps):
-        action = env.expert_action()
-        observations.append(obs)
-        actions.append(action)
-        result = env.step(action)
-        obs = result.obs
-        if result.success:
-            keys = observations[0].keys()
-            stacked = {k: np.stack([o[k] for o in observations]) for k in keys}
-            return Episode(np.stack(actions).astype(np.float32), stacked, seed)
-    return None
+    run = run_expert_episode(env, seed, max_steps, record=True)
+    if not run.success:
+        return None
+    stacked = {k: np.stack([o[k] for o in run.observations]) for k in run.observations[0]}
+    return Episode(np.stack(run.actions).astype(np.float32), stacked, seed)
 
 
 def generate_demos(suite: Suite, spec: DemoSpec, progress: bool = True) -> list[Episode]:

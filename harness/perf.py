@@ -23,6 +23,7 @@ from harness.evaluation import EvalSettings, Evaluator, evaluation_episodes
 from harness.trainer import PhaseTimer, TrainSettings, train_stage
 from methods import TaskContext, get_method, method_names
 from policies import FlowMatchingConfig, FlowMatchingPolicy
+from suites.base import run_expert_episode
 
 STATE_DIM, ACTION_DIM = 39, 4  # Meta-World's
 MW_QUICK = ["reach-v3", "push-v3", "drawer-open-v3", "button-press-topdown-v3", "window-open-v3",
@@ -157,12 +158,7 @@ def _raw_expert_share(suite_name: str, episodes, max_steps: int) -> int:
     for ep in episodes:
         if ep.task not in _RAW_ENVS:
             _RAW_ENVS[ep.task] = suite.make_env(ep.task)
-        env = _RAW_ENVS[ep.task]
-        env.reset(ep.seed)
-        for _ in range(max_steps):
-            steps += 1
-            if env.step(env.expert_action()).success:
-                break
+        steps += run_expert_episode(_RAW_ENVS[ep.task], ep.seed, max_steps).steps
     return steps
 
 

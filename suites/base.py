@@ -95,6 +95,32 @@ class TaskTableSuite(Suite):
         return self.tasks()[self.check_task(task)].instruction
 
 
+@dataclass
+class ExpertEpisode:
+    success: bool
+    steps: int
+    observations: list[Observation]  # the observation before each action, when recorded
+    actions: list[np.ndarray]
+
+
+def run_expert_episode(env: TaskEnv, seed: int, max_steps: int, record: bool = False) -> ExpertEpisode:
+    """The scripted expert from `reset(seed)` for at most `max_steps`, stopping at success: the
+    one loop behind demo generation, the expert tables and the raw-speed benchmark."""
+    obs = env.reset(seed)
+    episode = ExpertEpisode(False, 0, [], [])
+    for _ in range(max_steps):
+        action = env.expert_action()
+        if record:
+            episode.observations.append(obs)
+            episode.actions.append(action)
+        result = env.step(action)
+        obs, episode.steps = result.obs, episode.steps + 1
+        if result.success:
+            episode.success = True
+            break
+    return episode
+
+
 def episode_seeds(suite: str, task: str, split: str, n: int) -> list[int]:
     """Fixed initial-state seeds for one task and split ("demo", "heldout", "eval").
 
