@@ -15,7 +15,8 @@ import torch
 from torch.func import functional_call, grad, vmap
 
 from methods import register_method
-from methods.base import Method, MethodConfig, TaskContext
+from methods.anchored import AnchoredMethod, snapshot
+from methods.base import MethodConfig, TaskContext
 
 
 @dataclass
@@ -49,14 +50,14 @@ def per_sample_fisher(policy: torch.nn.Module, batch: dict, chunk: int = 128) ->
 
 
 @register_method
-class OnlineEWC(Method):
+class OnlineEWC(AnchoredMethod):
     name = "ewc"
     Config = EWCConfig
 
-    def __init__(self, config: EWCConfig | None = None):
-        super().__init__(config)
-        self.fisher: dict[str, torch.Tensor] | None = None
-        self.anchor: dict[str, torch.Tensor] | None = None
+    @property
+    def fisher(self) -> dict[str, torch.Tensor] | None:
+        """The online Fisher: the importance of each weight in the pull to the anchor."""
+        return self.importance
 
     def after_task(self, ctx: TaskContext) -> None:
         c = self.config
@@ -67,22 +68,8 @@ class OnlineEWC(Method):
         batch["noise"] = torch.randn(batch["actions"].shape, generator=g)
         batch["time"] = ctx.policy.sample_time(len(idx), g)
         new = per_sample_fisher(ctx.policy, batch, c.fisher_batch)
-        if self.fisher is None:
-            self.fisher = new
+        if self.importance is None:
+            self.importance = new
         else:
-            self.fisher = {k: c.decay * self.fisher[k] + new[k] for k in new}
-        self.anchor = {n: p.detach().clone() for n, p in ctx.policy.named_parameters()}
-
-    def penalty(self, policy: torch.nn.Module) -> torch.Tensor:
-        return sum((self.fisher[n] * (p - self.anchor[n]) ** 2).sum()
-                   for n, p in policy.named_parameters() if n in self.fisher)
-
-    def loss(self, per_sample, batch, policy):
-        penalty = self.penalty(policy)
-        return per_sample.mean() + 0.5 * self.config.strength * penalty, {"ewc/penalty": penalty.item()}
-
-    def state_dict(self):
-        return {"fisher": self.fisher, "anchor": self.anchor}
-
-    def load_state_dict(self, state):
-        self.fisher, self.anchor = state["fisher"], state["anchor"]
+            self.importance = {k: c.decay * self.importance[k] + new[k] for k in new}
+        self.anchor = snapshot(ctx.policy)
