@@ -21,7 +21,7 @@ from harness.metrics import CoreMetrics, core_metrics, libero_metrics, offline_r
 from harness.seeding import derive_seed, generator
 from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
 from harness.trainer import TrainSettings, train_stage
-from harness.updates import update_stats
+from harness.updates import parameters, update_stats
 from methods import Method, TaskContext
 from suites import Suite
 
@@ -78,7 +78,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     checkpoints = out / "stages"
     policy = build_policy(cfg, suite)
     policy.load_state_dict(foundation.policy_state)
-    theta0 = {k: v.clone() for k, v in foundation.policy_state.items()}
+    theta0 = parameters(policy)  # the foundation's weights, just loaded
     stages = [foundation.stage0]
 
     def context(stage: int, task: str, train) -> TaskContext:
@@ -99,7 +99,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     for stage, task in enumerate(cfg.stream_tasks, start=1):
         if stage <= len(stages) - 1:
             continue
-        previous = {k: v.clone() for k, v in policy.state_dict().items()}
+        previous = parameters(policy)
         torch.manual_seed(derive_seed(seed, "stage", stage))
         offset = cfg.foundation_steps + (stage - 1) * cfg.steps_per_task
 
@@ -124,18 +124,18 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         if cfg.learning_curve_every > 0:
             record.curve_steps = curve_steps + [cfg.steps_per_task]
             record.curve = curve + [record.success[task]]
-        current = policy.state_dict()
+        current = parameters(policy)
         record.updates, layer_rows = update_stats(theta0, current)
         record.updates_stage, _ = update_stats(previous, current)
         stages.append(record)
         save_checkpoint(checkpoints / f"stage_{stage}.pt", {
-            "run_key": run_key, "policy": current, "method": method.state_dict(),
+            "run_key": run_key, "policy": policy.state_dict(), "method": method.state_dict(),
             "records": [s.as_dict() for s in stages[1:]],
         })
         if on_stage is not None:
             on_stage(record)
     if not layer_rows:
-        _, layer_rows = update_stats(theta0, policy.state_dict())
+        _, layer_rows = update_stats(theta0, parameters(policy))
     tasks = cfg.foundation_tasks + cfg.stream_tasks
     result = RunResult(label, seed, out, stages, {}, tasks, layer_rows)
     result.metrics = summary_metrics(cfg, result)

@@ -12,9 +12,9 @@ RHOS = (1e-3, 1e-2)  # the headline thresholds (DESIGN.md)
 LAYER_RHOS = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # per layer: enough for a distribution plot
 
 
-def _trainable(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """Float parameters only: normalization statistics are buffers, not learned weights."""
-    return {k: v for k, v in state.items() if v.is_floating_point() and not k.endswith(("mean", "std"))}
+def parameters(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """A detached copy of the learned weights (not buffers such as normalization statistics)."""
+    return {n: p.detach().clone() for n, p in module.named_parameters()}
 
 
 def hoyer_sparsity(x: torch.Tensor) -> float:
@@ -26,10 +26,9 @@ def hoyer_sparsity(x: torch.Tensor) -> float:
     return float((n**0.5 - x.abs().sum() / l2) / (n**0.5 - 1))
 
 
-def update_stats(reference: dict[str, torch.Tensor], current: dict[str, torch.Tensor]
+def update_stats(ref: dict[str, torch.Tensor], cur: dict[str, torch.Tensor]
                  ) -> tuple[dict[str, float], list[dict]]:
-    """(whole-network figures, per-layer rows) for current - reference."""
-    ref, cur = _trainable(reference), _trainable(current)
+    """(whole-network figures, per-layer rows) for cur - ref, both name -> learned weights."""
     deltas, rows = [], []
     changed = {rho: 0 for rho in RHOS}
     total = 0
