@@ -49,6 +49,10 @@ class Method:
     name: ClassVar[str] = "sft"
     Config: ClassVar[type[MethodConfig]] = MethodConfig
     uses_past_data: ClassVar[bool] = False  # replay-style methods say True; the report shows it
+    # The trainer samples the next batch on a second thread while a step's backward and optimizer
+    # step run. A method whose sample_batch reads the policy (loss-based sampling, say) must say
+    # False, or it would read weights that are being updated.
+    prefetch_batches: ClassVar[bool] = True
 
     def __init__(self, config: MethodConfig | None = None):
         self.config = config if config is not None else self.Config()
