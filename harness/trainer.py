@@ -129,12 +129,12 @@ def train_stage(
                     f"non-finite loss ({loss.item()}) in method {method.name!r} at stage "
                     f"{ctx.stage} ({ctx.task}), step {step}; the last finished stage is kept"
                 )
-            flat.grad.zero_()
             loss.backward()
             timer.mark("backward")
             if settings.grad_clip > 0:
                 clip_grad_norm(flat.grad, settings.grad_clip)
             optimizer.step()
+            flat.grad.zero_()  # backward accumulates into it in place
             method.after_step(policy)
             timer.mark("optimizer")
             if step >= settings.steps - tail:
