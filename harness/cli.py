@@ -7,7 +7,6 @@ profile, method, every override, every task name, and the tracking store.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import itertools
 import sys
 import time
@@ -15,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from harness.config import BenchConfig, resolve, set_field
+from harness.config import BENCH_KEYS, BenchConfig, resolve, set_field
 from harness.errors import RetainError
 from methods import Method, get_method, method_names
 from suites import UnknownName, get_suite
@@ -77,13 +76,12 @@ def plan(args: list[str]) -> Plan:
         classes = [get_method(n) for n in names]
     except ValueError as exc:
         raise RetainError(str(exc)) from None
-    bench_keys = {f.name for f in dataclasses.fields(BenchConfig)} - {"method_params", "grid"}
     variants = []
     for point in parse_grid(cfg.grid):
         run_cfg = copy.deepcopy(cfg)
         params = dict(cfg.method_params)
         for key, value in point.items():
-            if key in bench_keys:
+            if key in BENCH_KEYS:
                 set_field(run_cfg, key, value)
             else:
                 params[key] = value
@@ -193,8 +191,8 @@ def _run_one(variant: Variant, suite, data, foundation, seed, evaluator, tracker
             log_stage(record)
 
         log_stage(foundation.stage0)
-        result = run_stream(cfg, suite, data, foundation, method, seed, evaluator, logger, on_stage,
-                            label=variant.label)
+        result = run_stream(cfg, suite, data, foundation, method, seed, evaluator, variant.label,
+                            logger, on_stage)
         for record in result.stages:  # stages resumed from checkpoints were not logged yet
             if record.stage not in logged:
                 log_stage(record)

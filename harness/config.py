@@ -70,6 +70,15 @@ class BenchConfig:
         return dataclasses.asdict(self)
 
 
+# the settings an override or a GRID point sets on the config; any other key is a method's
+BENCH_KEYS = frozenset(f.name for f in fields(BenchConfig)) - {"method_params", "grid"}
+
+# settings that cannot change a run's results (where it is written, how rollouts are split);
+# torch_threads stays in: the summation order of a matrix product depends on it
+NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
+                  "eval_envs_per_task", "results_dir", "cache_dir")
+
+
 def benchmark_names() -> list[str]:
     return sorted(p.stem for p in BENCHMARK_DIR.glob("*.yaml"))
 
@@ -114,8 +123,21 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
         cfg.eval_episodes = max(cfg.eval_episodes, 50)
         cfg.seeds = max(cfg.seeds, 3)
     cfg.profile = profile
-    if profile in ("tiny", "paper"):  # its own results directory and MLflow experiment
-        cfg.name = f"{cfg.name}-{profile}"
+    cfg.name = experiment_name(cfg.name, profile)
+
+
+def experiment_name(bench: str, profile: str) -> str:
+    """Tiny and paper runs get their own results directory and MLflow experiment."""
+    return f"{bench}-{profile}" if profile in ("tiny", "paper") else bench
+
+
+def pop_bench_and_profile(overrides: dict[str, str]) -> tuple[str, str]:
+    """Take BENCH and PROFILE out of `overrides`: the benchmark (the profile's default when
+    BENCH is not given) and the checked profile ("" for none)."""
+    profile = overrides.pop("PROFILE", "") or ""
+    if profile and profile not in PROFILE_BENCHMARKS:
+        raise RetainError(f"unknown profile {profile!r}; valid: {', '.join(PROFILE_BENCHMARKS)}")
+    return overrides.pop("BENCH", "") or PROFILE_BENCHMARKS.get(profile, "mw-quick"), profile
 
 
 def coerce(key: str, value: Any, annotation: Any) -> Any:
@@ -175,10 +197,7 @@ def parse_overrides(args: list[str]) -> dict[str, str]:
 def resolve(args: list[str]) -> BenchConfig:
     """The full config from command-line arguments such as `METHOD=sft PROFILE=quick lr=1e-4`."""
     overrides = parse_overrides(args)
-    profile = overrides.pop("PROFILE", "") or ""
-    if profile and profile not in PROFILE_BENCHMARKS:
-        raise RetainError(f"unknown profile {profile!r}; valid: {', '.join(PROFILE_BENCHMARKS)}")
-    bench = overrides.pop("BENCH", "") or PROFILE_BENCHMARKS.get(profile, "mw-quick")
+    bench, profile = pop_bench_and_profile(overrides)
     cfg = load_benchmark(bench)
     if profile in ("tiny", "paper"):
         apply_profile(cfg, profile)
@@ -188,9 +207,8 @@ def resolve(args: list[str]) -> BenchConfig:
         if overrides.get(upper, "") != "":
             set_field(cfg, lower, overrides.pop(upper))
         overrides.pop(upper, None)
-    bench_keys = {f.name for f in fields(BenchConfig)} - {"method_params", "grid"}
     for key, value in overrides.items():
-        if key in bench_keys:
+        if key in BENCH_KEYS:
             set_field(cfg, key, value)
         else:
             cfg.method_params[key.removeprefix("method.")] = value

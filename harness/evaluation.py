@@ -163,12 +163,14 @@ class Evaluator:
         if self._pool is None:
             outcomes = rollout(policy, episodes, instructions, self.settings, noise_seed, self._local)
             return group_by_task(episodes, outcomes)
-        shares = [episodes[i::self.workers] for i in range(self.workers)]
+        shares = [s for s in (episodes[i::self.workers] for i in range(self.workers)) if s]
+        # a copy: sending tensors to workers moves their storage to shared memory, and during a
+        # learning-curve evaluation the parameters are views into the trainer's flat buffer
         weights = {k: v.detach().clone() for k, v in policy.state_dict().items()}
         futures = [self._pool.submit(_worker_rollout, policy.config, weights, share, instructions,
-                                     noise_seed) for share in shares if share]
+                                     noise_seed) for share in shares]
         outcomes: dict[EvalEpisode, tuple[bool, int]] = {}
-        for share, future in zip([s for s in shares if s], futures):
+        for share, future in zip(shares, futures):
             outcomes.update(zip(share, future.result()))
         return group_by_task(episodes, [outcomes[ep] for ep in episodes])
 

@@ -18,16 +18,15 @@ from multiprocessing import get_context
 
 import torch
 
+from harness.config import load_benchmark
 from harness.datasets import TrainingData
-from harness.evaluation import EvalSettings, Evaluator, evaluation_episodes
+from harness.evaluation import EnvCache, EvalSettings, Evaluator, evaluation_episodes
 from harness.trainer import PhaseTimer, TrainSettings, train_stage
 from methods import TaskContext, get_method, method_names
 from policies import FlowMatchingConfig, FlowMatchingPolicy
 from suites.base import run_expert_episode
 
 STATE_DIM, ACTION_DIM = 39, 4  # Meta-World's
-MW_QUICK = ["reach-v3", "push-v3", "drawer-open-v3", "button-press-topdown-v3", "window-open-v3",
-            "door-open-v3", "drawer-close-v3", "window-close-v3", "button-press-v3"]
 
 
 def synthetic_data(n: int, seed: int, task: str = "task", chunk: int = 4) -> TrainingData:
@@ -151,19 +150,18 @@ def bench_methods(rounds: int = 15, steps: int = 20) -> None:
     print("target: consft within 1.05x of sft in time, and no parameter-sized state")
 
 
-_RAW_ENVS: dict = {}  # per worker process, kept between calls like the evaluator's
+_RAW_ENVS: dict[str, EnvCache] = {}  # per worker process, kept between calls like the evaluator's
 
 
 def _raw_expert_share(suite_name: str, episodes, max_steps: int) -> int:
     from suites import get_suite
 
-    suite = get_suite(suite_name)
-    steps = 0
-    for ep in episodes:
-        if ep.task not in _RAW_ENVS:
-            _RAW_ENVS[ep.task] = suite.make_env(ep.task)
-        steps += run_expert_episode(_RAW_ENVS[ep.task], ep.seed, max_steps).steps
-    return steps
+    if suite_name not in _RAW_ENVS:
+        _RAW_ENVS[suite_name] = EnvCache(get_suite(suite_name),
+                                         EvalSettings(len(episodes), max_steps, n_action_steps=1))
+    envs = _RAW_ENVS[suite_name]
+    return sum(run_expert_episode(envs.for_task(ep.task, 1)[0], ep.seed, max_steps).steps
+               for ep in episodes)
 
 
 def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200) -> None:
@@ -171,7 +169,9 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200) -> No
     from suites import get_suite
 
     suite = get_suite("metaworld")
-    eps = evaluation_episodes("metaworld", MW_QUICK, episodes)
+    benchmark = load_benchmark("mw-quick")
+    mw_quick_tasks = benchmark.foundation_tasks + benchmark.stream_tasks
+    eps = evaluation_episodes("metaworld", mw_quick_tasks, episodes)
     settings = EvalSettings(episodes, max_steps, n_action_steps=4)
     ctx = get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=ctx) as pool:  # warm: imports and env builds
@@ -182,13 +182,13 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200) -> No
                                  [max_steps] * workers))
         raw_time = time.perf_counter() - start
     policy = _policy("default")
-    instructions = {t: torch.randn(384).numpy() for t in MW_QUICK}
+    instructions = {t: torch.randn(384).numpy() for t in mw_quick_tasks}
     rates = {}
     for n in (1, workers):
         with Evaluator(suite, settings, workers=n) as evaluator:
-            evaluator.evaluate(policy, MW_QUICK, instructions, noise_seed=0)  # warm
+            evaluator.evaluate(policy, mw_quick_tasks, instructions, noise_seed=0)  # warm
             start = time.perf_counter()
-            results = evaluator.evaluate(policy, MW_QUICK, instructions, noise_seed=0)
+            results = evaluator.evaluate(policy, mw_quick_tasks, instructions, noise_seed=0)
             elapsed = time.perf_counter() - start
         rates[n] = (sum(r.steps for r in results.values()) / elapsed, elapsed)
     raw_rate = raw_steps / raw_time

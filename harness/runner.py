@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from harness.config import BenchConfig, set_field
+from harness.config import NOT_IN_RUN_KEY, BenchConfig, set_field
 from harness.data import BenchmarkData
 from harness.errors import RetainError
 from harness.evaluation import Evaluator
@@ -21,8 +21,9 @@ from harness.metrics import CoreMetrics, core_metrics, libero_metrics, offline_r
 from harness.seeding import derive_seed, generator
 from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
 from harness.trainer import TrainSettings, train_stage
-from harness.updates import parameters, update_stats
+from harness.updates import update_stats
 from methods import Method, TaskContext
+from methods.base import snapshot
 from suites import Suite
 
 
@@ -66,19 +67,18 @@ def run_dir(cfg: BenchConfig, label: str, seed: int) -> Path:
 
 
 def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: Foundation,
-               method: Method, seed: int, evaluator: Evaluator, log_step=None, on_stage=None,
-               label: str | None = None) -> RunResult:
+               method: Method, seed: int, evaluator: Evaluator, label: str, log_step=None,
+               on_stage=None) -> RunResult:
     """Stages 1..k for one method and seed, resuming from checkpoints in the run directory.
 
     `log_step(global_step, metrics)` receives training metrics; `on_stage(record)` each new
     stage's record (both for tracking).
     """
-    label = label or method.name
     out = run_dir(cfg, label, seed)
     checkpoints = out / "stages"
     policy = build_policy(cfg, suite)
     policy.load_state_dict(foundation.policy_state)
-    theta0 = parameters(policy)  # the foundation's weights, just loaded
+    theta0 = snapshot(policy)  # the foundation's weights, just loaded
     stages = [foundation.stage0]
 
     def context(stage: int, task: str, train) -> TaskContext:
@@ -99,7 +99,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     for stage, task in enumerate(cfg.stream_tasks, start=1):
         if stage <= len(stages) - 1:
             continue
-        previous = parameters(policy)
+        previous = snapshot(policy)
         torch.manual_seed(derive_seed(seed, "stage", stage))
         offset = cfg.foundation_steps + (stage - 1) * cfg.steps_per_task
 
@@ -110,21 +110,21 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         curve_steps, curve = [0], [stages[-1].success[task]]
 
         def learning_curve(done: int, task=task, curve_steps=curve_steps, curve=curve) -> None:
-            every = cfg.learning_curve_every
-            if every > 0 and done % every == 0 and done < cfg.steps_per_task:
+            if done % cfg.learning_curve_every == 0 and done < cfg.steps_per_task:
                 result = evaluator.evaluate(policy, [task], data.instructions, derive_seed(seed, "eval"))
                 curve_steps.append(done)
                 curve.append(result[task].success_rate)
                 policy.train()
 
         result = train_stage(context(stage, task, data.train[task]), method, settings,
-                             generator(seed, "stage", stage), log, after_step=learning_curve)
+                             generator(seed, "stage", stage), log,
+                             after_step=learning_curve if cfg.learning_curve_every > 0 else None)
         record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, task)
         record.train_loss = result.final_loss
         if cfg.learning_curve_every > 0:
             record.curve_steps = curve_steps + [cfg.steps_per_task]
             record.curve = curve + [record.success[task]]
-        current = parameters(policy)
+        current = snapshot(policy)
         record.updates, layer_rows = update_stats(theta0, current)
         record.updates_stage, _ = update_stats(previous, current)
         stages.append(record)
@@ -135,17 +135,11 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         if on_stage is not None:
             on_stage(record)
     if not layer_rows:
-        _, layer_rows = update_stats(theta0, parameters(policy))
+        _, layer_rows = update_stats(theta0, snapshot(policy))
     tasks = cfg.foundation_tasks + cfg.stream_tasks
     result = RunResult(label, seed, out, stages, {}, tasks, layer_rows)
     result.metrics = summary_metrics(cfg, result)
     return result
-
-
-# settings that cannot change a run's results (where it is written, how rollouts are split);
-# torch_threads stays in: the summation order of a matrix product depends on it
-NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
-                  "eval_envs_per_task", "results_dir", "cache_dir")
 
 
 def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> str:

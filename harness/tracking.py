@@ -84,8 +84,8 @@ class Tracker:
                 return self.client.create_experiment(name, artifact_location=location)
             except Exception as exc:  # noqa: BLE001 - MLflow raises many types for one cause
                 text = str(exc)
-                if "already exists" in text or "UNIQUE constraint" in text or "locked" in text:
-                    time.sleep(0.2 * (attempt + 1))  # another process created it, or holds the lock
+                if "already exists" in text or "UNIQUE constraint" in text:
+                    time.sleep(0.2 * (attempt + 1))  # another process created it (locks: _RetryOnLock)
                     continue
                 first = text.splitlines()[0] if text else type(exc).__name__
                 raise RetainError(f"tracking server {self.uri} is unreachable: {first[:200]}") from None
@@ -163,7 +163,6 @@ class _RetryOnLock:
                     if "locked" not in str(exc) or attempt == self._attempts - 1:
                         raise
                     time.sleep(min(2.0, 0.05 * 2**attempt))
-            return None
 
         return call
 

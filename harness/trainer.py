@@ -59,7 +59,8 @@ def contiguous_parameters(params: list[torch.nn.Parameter]) -> Iterator[torch.nn
     Every parameter becomes a view into the flat buffer and its `.grad` a view into the flat
     gradient (backward accumulates into it in place, as DDP's `gradient_as_bucket_view` does), so
     gradient clipping and the optimizer are one kernel over one tensor instead of one per
-    parameter: on a CPU that halves their time. On exit the parameters get their own storage back.
+    parameter (on a CPU, 1.6 ms -> 1.2 ms per default-policy step). On exit the parameters get
+    their own storage back.
     """
     flat = torch.nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
     flat.grad = torch.zeros_like(flat)
@@ -137,11 +138,14 @@ def train_stage(
             flat.grad.zero_()  # backward accumulates into it in place
             method.after_step(policy)
             timer.mark("optimizer")
-            if step >= settings.steps - tail:
-                tail_losses.append(per_sample.detach().mean().item())
-            if log is not None:
-                log(step, {"train/flow_loss": per_sample.detach().mean().item(),
-                           "train/objective": loss.item(), **stats})
+            in_tail = step >= settings.steps - tail
+            if in_tail or log is not None:
+                mean_loss = per_sample.detach().mean().item()
+                if in_tail:
+                    tail_losses.append(mean_loss)
+                if log is not None:
+                    log(step, {"train/flow_loss": mean_loss, "train/objective": loss.item(),
+                               **stats})
             if after_step is not None:
                 after_step(step + 1)  # steps done so far, e.g. for learning-curve evaluations
     method.after_task(ctx)

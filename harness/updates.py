@@ -12,10 +12,6 @@ RHOS = (1e-3, 1e-2)  # the headline thresholds (DESIGN.md)
 LAYER_RHOS = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # per layer: enough for a distribution plot
 
 
-def parameters(module: torch.nn.Module) -> dict[str, torch.Tensor]:
-    """A detached copy of the learned weights (not buffers such as normalization statistics)."""
-    return {n: p.detach().clone() for n, p in module.named_parameters()}
-
 
 def hoyer_sparsity(x: torch.Tensor) -> float:
     """(sqrt(n) - |x|_1 / |x|_2) / (sqrt(n) - 1): 0 for a uniform vector, 1 for one non-zero."""

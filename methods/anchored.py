@@ -13,10 +13,6 @@ import torch
 from methods.base import Method
 
 
-def snapshot(policy: torch.nn.Module) -> dict[str, torch.Tensor]:
-    return {n: p.detach().clone() for n, p in policy.named_parameters()}
-
-
 class AnchoredMethod(Method):
     def __init__(self, config=None):
         super().__init__(config)

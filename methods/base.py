@@ -38,6 +38,12 @@ class TaskContext:
     steps: int  # optimizer steps planned for this stage
 
 
+def snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """A detached copy of the learned weights (not buffers such as normalization statistics):
+    what L2 and EWC anchor to, and what the harness measures updates against."""
+    return {n: p.detach().clone() for n, p in module.named_parameters()}
+
+
 @dataclass
 class MethodConfig:
     """Hyperparameters of a method; subclasses extend it with their own fields."""

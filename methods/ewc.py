@@ -15,8 +15,8 @@ import torch
 from torch.func import functional_call, grad, vmap
 
 from methods import register_method
-from methods.anchored import AnchoredMethod, snapshot
-from methods.base import MethodConfig, TaskContext
+from methods.anchored import AnchoredMethod
+from methods.base import MethodConfig, TaskContext, snapshot
 
 
 @dataclass

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from methods import register_method
-from methods.anchored import AnchoredMethod, snapshot
-from methods.base import MethodConfig, TaskContext
+from methods.anchored import AnchoredMethod
+from methods.base import MethodConfig, TaskContext, snapshot
 
 
 @dataclass

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from harness.config import PROFILE_BENCHMARKS, coerce, parse_overrides
+from harness.config import coerce, experiment_name, parse_overrides, pop_bench_and_profile
 from harness.errors import RetainError
 from harness.report.build import ReportSettings, build_report
 
@@ -20,14 +20,8 @@ def settings_from(args: list[str]) -> ReportSettings:
     unknown = sorted(set(given) - set(KEYS))
     if unknown:
         raise RetainError(f"unknown report setting {unknown[0]!r}; valid: {', '.join(KEYS)}")
-    profile = given.get("PROFILE", "")
-    if profile and profile not in PROFILE_BENCHMARKS:
-        raise RetainError(f"unknown profile {profile!r}; valid: {', '.join(PROFILE_BENCHMARKS)}")
-    experiment = given.get("EXPERIMENT")
-    if not experiment:  # named as `make bench` names it: tiny and paper runs get a suffix
-        experiment = given.get("BENCH") or PROFILE_BENCHMARKS.get(profile, "mw-quick")
-        if profile in ("tiny", "paper"):
-            experiment = f"{experiment}-{profile}"
+    bench, profile = pop_bench_and_profile(dict(given))
+    experiment = given.get("EXPERIMENT") or experiment_name(bench, profile)  # as `make bench` names it
     return ReportSettings(experiment=experiment,
                           results_dir=given.get("results_dir") or "results",
                           log_run=coerce("log_run", given.get("log_run", "1"), bool))

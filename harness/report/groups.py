@@ -11,8 +11,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+from harness.config import NOT_IN_RUN_KEY
 from harness.report.runs import RunRecord
-from harness.runner import NOT_IN_RUN_KEY
 
 # config fields that do not change what a run measures (the runner's own list: where a run is
 # written, how its rollouts are split), or that name the method and seed themselves

@@ -76,6 +76,7 @@ def csv_table(summaries: list[RowSummary]) -> str:
         header += [f"{m.key}_mean", f"{m.key}_ci_low", f"{m.key}_ci_high", f"{m.key}_n",
                    f"{m.key}_best"]
     writer.writerow(header)
+    best = {m.key: best_labels(summaries, m) for m in metrics}
     for s in summaries:
         row = s.row
         line = [row.label, row.method, row.sweep_point, _full(row.lr), len(row.runs),
@@ -83,7 +84,7 @@ def csv_table(summaries: list[RowSummary]) -> str:
         for m in metrics:
             c = s.cells[m.key]
             line += [_full(c.mean if c.n else None), _full(c.low), _full(c.high), c.n,
-                     int(s.label in best_labels(summaries, m))]
+                     int(s.label in best[m.key])]
         writer.writerow(line)
     return buf.getvalue()
 

@@ -9,11 +9,17 @@ See README.md in this folder for the task list and the experts' success table.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
 from suites import register_suite
 from suites.base import Observation, StepResult, TaskEnv, TaskTableSuite
+from suites.bimanual.scene import env_kwargs, seed_env, to_robosuite_action
+from suites.bimanual.script import Script, target_orientation
+from suites.bimanual.tasks import TASKS
+from suites.bimanual.world import read_world
 
 MAX_OBJECTS = 3
 MAX_POINTS = 2
@@ -43,23 +49,13 @@ def _hemisphere(q: np.ndarray, ref) -> np.ndarray:
 
 # The grip-site orientation of a gripper pointing straight down (fingers along y): the eef quaternions'
 # reference, so a downward gripper's quaternion keeps one sign whatever its yaw within +-90 degrees.
-_EEF_REF = None
-
-
+@functools.cache
 def _eef_ref() -> np.ndarray:
-    global _EEF_REF
-    if _EEF_REF is None:
-        from suites.bimanual.script import target_orientation
-
-        _EEF_REF = _quat(target_orientation(np.pi / 2))
-    return _EEF_REF
+    return _quat(target_orientation(np.pi / 2))
 
 
 class BimanualEnv(TaskEnv):
     def __init__(self, task: str, cameras: bool, image_size: int):
-        from suites.bimanual.scene import env_kwargs
-        from suites.bimanual.tasks import TASKS
-
         self.spec = TASKS[task]
         self._env = self.spec.build(env_kwargs(cameras, image_size))
         self._bodies, self._sites = self.spec.names(self._env)
@@ -70,9 +66,6 @@ class BimanualEnv(TaskEnv):
 
     # -- TaskEnv
     def reset(self, seed: int) -> Observation:
-        from suites.bimanual.scene import seed_env
-        from suites.bimanual.script import Script
-
         seed_env(self._env, int(seed))
         self._raw_obs = self._env.reset()
         self._refresh()
@@ -80,8 +73,6 @@ class BimanualEnv(TaskEnv):
         return self._observation()
 
     def step(self, action: np.ndarray) -> StepResult:
-        from suites.bimanual.scene import to_robosuite_action
-
         action = np.clip(np.asarray(action, dtype=np.float64).reshape(ACTION_DIM), -1.0, 1.0)
         self._raw_obs, _, _, _ = self._env.step(to_robosuite_action(action))
         self._refresh()
@@ -105,15 +96,13 @@ class BimanualEnv(TaskEnv):
         return self._world
 
     def _refresh(self) -> None:
-        from suites.bimanual.world import read_world
-
         self._world = read_world(self._env, self._bodies, self._sites)
 
     def _observation(self) -> Observation:
         obs = {"state": state_vector(self._world, self.spec)}
         if self._cameras:
             # robosuite renders with OpenGL's origin at the bottom-left: flip rows to get an upright image
-            obs["agentview_image"] = np.ascontiguousarray(self._raw_obs["agentview_image"][::-1]).astype(np.uint8)
+            obs["agentview_image"] = np.ascontiguousarray(self._raw_obs["agentview_image"][::-1])
         return obs
 
 
@@ -143,8 +132,6 @@ class BimanualSuite(TaskTableSuite):
     max_episode_steps = 400  # 20 s at 20 Hz; the slowest expert needs about half
 
     def tasks(self) -> dict:
-        from suites.bimanual.tasks import TASKS
-
         return TASKS
 
     def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv:

@@ -9,8 +9,6 @@ State layout (STATE_DIM = 36, identical for every task, zeros where a slot is un
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 
 from suites.base import Observation, StepResult, TaskEnv
@@ -31,8 +29,6 @@ CAMERAS = {"agentview_image": "agentview", "wrist_image": "robot0_eye_in_hand"}
 
 def make_robosuite_env(task: Task, cameras: bool, image_size: int) -> TabletopEnv:
     from robosuite import load_composite_controller_config
-
-    logging.getLogger("robosuite_logs").setLevel(logging.WARNING)  # "loading controller" per env
 
     controller = load_composite_controller_config(controller="BASIC")
     controller["body_parts"] = {"right": {**controller["body_parts"]["right"], "type": "OSC_POSE"}}
