@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from harness.config import BENCH_KEYS, BenchConfig, resolve, set_field
+from harness.config import BENCH_KEYS, SHARED_BY_SWEEP_POINTS, BenchConfig, resolve, set_field
 from harness.errors import RetainError
 from methods import Method, get_method, method_names
 from suites import UnknownName, get_suite
@@ -81,6 +81,9 @@ def plan(args: list[str]) -> Plan:
         run_cfg = copy.deepcopy(cfg)
         params = dict(cfg.method_params)
         for key, value in point.items():
+            if key in SHARED_BY_SWEEP_POINTS:
+                raise RetainError(f"GRID cannot vary {key!r}: every sweep point shares the demos, "
+                                  f"foundation and evaluation it sets; run it as separate benchmarks")
             if key in BENCH_KEYS:
                 set_field(run_cfg, key, value)
             else:

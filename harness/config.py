@@ -73,6 +73,15 @@ class BenchConfig:
 # the settings an override or a GRID point sets on the config; any other key is a method's
 BENCH_KEYS = frozenset(f.name for f in fields(BenchConfig)) - {"method_params", "grid"}
 
+# settings of what every sweep point shares (the demos, the foundation, the evaluator), so a
+# GRID cannot vary them: the points would record a value that was never used
+SHARED_BY_SWEEP_POINTS = frozenset({
+    "name", "suite", "foundation_tasks", "stream_tasks", "demos_per_task",
+    "heldout_demos_per_task", "eval_episodes", "max_episode_steps", "foundation_steps",
+    "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras", "image_size",
+    "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress", "torch_threads",
+    "eval_workers", "eval_envs_per_task"})
+
 # settings that cannot change a run's results (where it is written, how rollouts are split);
 # torch_threads stays in: the summation order of a matrix product depends on it
 NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
