@@ -21,7 +21,7 @@ from policies import FlowMatchingConfig, FlowMatchingPolicy
 from policies.flow_matching.modeling import ARCHITECTURE_VERSION
 from suites import Suite
 
-FOUNDATION_VERSION = 3  # bump when the training code changes what a cached checkpoint holds
+FOUNDATION_VERSION = 4  # bump when the training code changes what a cached checkpoint holds
 
 
 @dataclass

@@ -1,10 +1,12 @@
-"""The training loop's two speed devices (one flat buffer for parameters and gradients, the next
-batch sampled on a second thread) must not change what is learned."""
+"""The training loop's speed devices (one flat buffer for parameters and gradients updated by
+direct kernel calls, the next batch sampled on a second thread) must not change what is
+learned."""
 
 import copy
 
 import torch
 
+from harness.optim import FlatAdamW
 from harness.perf import _policy, synthetic_data
 from harness.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
@@ -60,3 +62,21 @@ def test_parameters_get_their_own_storage_back_and_frozen_ones_stay_put():
     for name, p in policy.named_parameters():
         assert p.grad is None, name
         assert p.untyped_storage().nbytes() == p.numel() * p.element_size(), name
+
+
+def test_flat_adamw_matches_torch_adamw_after_clipping():
+    g = torch.Generator().manual_seed(0)
+    ours = torch.nn.Parameter(torch.randn(1000, generator=g))
+    theirs = torch.nn.Parameter(ours.detach().clone())
+    ours.grad = torch.zeros_like(ours)
+    optimizer = FlatAdamW(ours, lr=1e-2, weight_decay=0.1, grad_clip=1.0)
+    reference = torch.optim.AdamW([theirs], lr=1e-2, weight_decay=0.1)
+    for scale in (10.0, 0.01, 5.0, 0.001):  # norms far above and below the clip
+        grad = scale * torch.randn(1000, generator=g)
+        ours.grad.copy_(grad)
+        theirs.grad = grad.clone()
+        torch.nn.utils.clip_grad_norm_([theirs], 1.0)
+        optimizer.step()
+        reference.step()
+        torch.testing.assert_close(ours, theirs, rtol=1e-6, atol=1e-7)
+        assert not ours.grad.any()  # zeroed for the next backward, which accumulates into it
