@@ -227,3 +227,22 @@ def test_rows_split_sweeps_and_learning_rates():
     summaries = [summarize(r) for r in rows]
     assert summaries[3].cells["retention"].mean == pytest.approx(0.9)
     assert sft_frontier(summaries) == [(0.5, 0.6), (0.8, 0.3), (0.9, 0.1)]
+
+
+def test_update_histogram_uses_the_thresholds_every_run_logged():
+    # Runs logged before and after a change of thresholds: bins on the shared threshold only.
+    import dataclasses
+
+    from harness.report.aggregate import summarize
+    from harness.report.groups import Row
+    from harness.report.runs import LayerUpdate
+
+    old = dataclasses.replace(fake_run("sft", 0), layers=[
+        LayerUpdate("w", 100, 0.1, {0.01: 0.4}), LayerUpdate("b", 300, 0.1, {0.01: 0.8})])
+    new = dataclasses.replace(fake_run("sft", 1), layers=[
+        LayerUpdate("w", 100, 0.1, {0.001: 0.9, 0.01: 0.2}),
+        LayerUpdate("b", 300, 0.1, {0.001: 0.9, 0.01: 0.6})])
+    histogram = summarize(Row("sft", "sft", "", [old, new], [])).updates
+    assert histogram.bins == ["<= 0.01", "> 0.01"]
+    above = ((100 * 0.4 + 300 * 0.8) / 400 + (100 * 0.2 + 300 * 0.6) / 400) / 2  # 0.6
+    np.testing.assert_allclose(histogram.fractions, [1 - above, above])

@@ -105,20 +105,22 @@ def _nanmean(stack: np.ndarray) -> np.ndarray:
 
 def _update_histogram(runs: list[RunRecord]) -> UpdateHistogram | None:
     """Exact coarse histogram from the logged per-layer fractions: with thresholds rho_1 < rho_2,
-    the bins are [0, rho_1], (rho_1, rho_2] and above rho_2, weighted by each layer's size."""
+    the bins are [0, rho_1], (rho_1, rho_2] and above rho_2, weighted by each layer's size. Only
+    the thresholds every run logged are used, so runs from before and after a change of
+    thresholds still share bins."""
+    logged = [run for run in runs if run.layers]
+    if not logged:
+        return None
+    rhos = sorted(set.intersection(*(set(run.layers[0].frac_changed) for run in logged)))
+    if not rhos:
+        return None
     per_run = []
-    rhos: list[float] = []
-    for run in runs:
-        if not run.layers:
-            continue
-        rhos = sorted(run.layers[0].frac_changed)
+    for run in logged:
         total = sum(layer.numel for layer in run.layers)
         above = [sum(layer.numel * layer.frac_changed[rho] for layer in run.layers) / total
                  for rho in rhos]  # fraction of scalars above each threshold, decreasing
         edges = [1.0, *above, 0.0]
         per_run.append([edges[i] - edges[i + 1] for i in range(len(edges) - 1)])
-    if not per_run:
-        return None
     names = [f"<= {rhos[0]:g}"]
     names += [f"{lo:g} - {hi:g}" for lo, hi in itertools.pairwise(rhos)]
     names.append(f"> {rhos[-1]:g}")
