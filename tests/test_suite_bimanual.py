@@ -1,4 +1,5 @@
-"""The bimanual suite: shapes, seeding, experts, and that [left | right] actions reach the right arms."""
+"""The bimanual suite: shapes, and that [left | right] actions reach the right arms (seeding and
+experts: tests/test_suites.py)."""
 
 from __future__ import annotations
 
@@ -30,12 +31,6 @@ def test_suite_shape():
     assert SUITE.action_dim == 14
     assert len(TASKS) >= 8
     assert all(SUITE.instruction(t) for t in TASKS)
-
-
-
-
-
-
 
 
 @pytest.mark.parametrize("moving,still", [("left", "right"), ("right", "left")])

@@ -1,9 +1,9 @@
-"""The libero_rs suite: contract, seeding, experts, and the real-LIBERO file reader."""
+"""The libero_rs suite: shape, cameras, the expert table and the real-LIBERO file reader (seeding
+and experts: tests/test_suites.py)."""
 
 from __future__ import annotations
 
 import json
-from functools import cache
 
 import numpy as np
 import pytest
@@ -17,11 +17,6 @@ SUITE = get_suite("libero_rs")
 TASKS = SUITE.task_names()
 
 
-@cache
-def env_for(task: str):
-    return SUITE.make_env(task)  # one env per task for the whole file: building one takes ~1 s
-
-
 def test_suite_shape():
     from suites.robosuite_libero.env import STATE_DIM
 
@@ -31,10 +26,6 @@ def test_suite_shape():
     assert all(instructions) and len(set(instructions)) == len(TASKS)
     with pytest.raises(ValueError, match="unknown libero_rs task"):
         SUITE.make_env("no_such_task")
-
-
-
-
 
 
 def test_cameras_give_uint8_images():

@@ -13,13 +13,13 @@ import functools
 
 import numpy as np
 
-import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
 from suites import register_suite
 from suites.base import Observation, StepResult, TaskEnv, TaskTableSuite
-from suites.bimanual.scene import env_kwargs, seed_env, to_robosuite_action
+from suites.bimanual.scene import env_kwargs, to_robosuite_action
 from suites.bimanual.script import Script, target_orientation
 from suites.bimanual.tasks import TASKS
 from suites.bimanual.world import read_world
+from suites.robosuite_common import seed_env, upright
 
 MAX_OBJECTS = 3
 MAX_POINTS = 2
@@ -101,8 +101,7 @@ class BimanualEnv(TaskEnv):
     def _observation(self) -> Observation:
         obs = {"state": state_vector(self._world, self.spec)}
         if self._cameras:
-            # robosuite renders with OpenGL's origin at the bottom-left: flip rows to get an upright image
-            obs["agentview_image"] = np.ascontiguousarray(self._raw_obs["agentview_image"][::-1])
+            obs["agentview_image"] = upright(self._raw_obs["agentview_image"])
         return obs
 
 

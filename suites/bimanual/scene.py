@@ -17,11 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from suites import robosuite_common
+from suites.robosuite_common import TABLE_SIZE, TABLE_TOP
+
 ARMS = ("left", "right")
 ROBOT_INDEX = {"left": 1, "right": 0}  # suite arm name -> robosuite robot index
 ARM_ACTION_DIM = 7  # OSC_POSE delta (3 pos + 3 axis-angle rot) + 1 gripper (+1 closes, -1 opens)
-TABLE_TOP_Z = 0.8  # robosuite's default table offset
-TABLE_SIZE = (0.8, 0.8, 0.05)
 
 
 def to_robosuite_action(action: np.ndarray) -> np.ndarray:
@@ -36,32 +37,11 @@ def env_kwargs(cameras: bool, image_size: int) -> dict:
     from robosuite import load_composite_controller_config
 
     return dict(
+        robosuite_common.env_kwargs(cameras, image_size, "agentview"),
         robots=["Panda", "Panda"],
         env_configuration="parallel",
         controller_configs=load_composite_controller_config(robot="Panda"),  # OSC_POSE, delta, base frame
-        control_freq=20,
-        horizon=100_000,  # the harness ends episodes, not robosuite
-        ignore_done=True,
-        hard_reset=False,  # reset in place: reloading the model costs ~2 s per episode
-        has_renderer=False,
-        has_offscreen_renderer=cameras,
-        use_camera_obs=cameras,
-        camera_names="agentview",
-        camera_heights=image_size,
-        camera_widths=image_size,
     )
-
-
-def seed_env(env, seed: int) -> None:
-    """Point every RNG robosuite draws from at reset (robot joint noise, object samplers) to `seed`."""
-    rng = np.random.default_rng(seed)
-    env.rng = rng
-    sampler = getattr(env, "placement_initializer", None)
-    stack = [sampler] if sampler is not None else []
-    while stack:
-        s = stack.pop()
-        s.rng = rng
-        stack.extend(getattr(s, "samplers", {}).values())
 
 
 @dataclass(frozen=True)
@@ -126,7 +106,7 @@ def _define_scene_class():
             for robot, offset in zip(self.robots, (-0.25, 0.25)):
                 xpos = np.array(robot.robot_model.base_xpos_offset["table"](TABLE_SIZE[0]))
                 robot.robot_model.set_base_xpos(xpos + np.array((0.0, offset, 0.0)))
-            arena = TableArena(table_full_size=TABLE_SIZE, table_offset=(0, 0, TABLE_TOP_Z))
+            arena = TableArena(table_full_size=TABLE_SIZE, table_offset=(0, 0, TABLE_TOP))
             arena.set_origin([0, 0, 0])
             self.objects = {item.name: item.make(item.name) for item in self.items}
             self.pads = {
@@ -149,12 +129,12 @@ def _define_scene_class():
             for item in self.items:
                 obj = self.objects[item.name]
                 xy = [self.rng.uniform(*item.x), self.rng.uniform(*item.y)]
-                z = TABLE_TOP_Z - obj.bottom_offset[2] + 0.002
+                z = TABLE_TOP - obj.bottom_offset[2] + 0.002
                 quat = T.convert_quat(T.axisangle2quat(np.array([0.0, 0.0, self.rng.uniform(*item.yaw)])), to="wxyz")
                 self.sim.data.set_joint_qpos(obj.joints[0], np.concatenate([xy, [z], quat]))
             for m in self.markers:
                 xy = [self.rng.uniform(*m.x), self.rng.uniform(*m.y)]
-                self.sim.model.body_pos[self.marker_body_ids[m.name]] = [*xy, TABLE_TOP_Z + 0.001]
+                self.sim.model.body_pos[self.marker_body_ids[m.name]] = [*xy, TABLE_TOP + 0.001]
             self.sim.forward()
 
         def reward(self, action=None):

@@ -17,13 +17,11 @@ import numpy as np
 
 from suites.bimanual.scene import ARM_ACTION_DIM, ARMS
 from suites.bimanual.world import World
+from suites.robosuite_common import CLOSED, OPEN, POS_SCALE, ROT_SCALE
 
-OPEN, CLOSED = -1.0, 1.0
 Point = Callable[[World], np.ndarray]
 Angle = Callable[[World], float]
 
-_POS_SCALE = 0.05  # metres per unit action (robosuite's OSC_POSE output_max)
-_ROT_SCALE = 0.5  # radians per unit action
 _POS_GAIN = 0.8  # fraction of the remaining error commanded per step
 _MAX_POS_ACTION = 0.7  # caps the speed (0.7 * 0.05 m at 20 Hz = 0.7 m/s commanded)
 _YAW_TOL = 0.08  # rad
@@ -159,11 +157,11 @@ class Script:
             self._grip[arm] = move.grip
 
         pos_err = goal - world.eef_pos[arm]
-        pos_action = pos_err * _POS_GAIN / _POS_SCALE
+        pos_action = pos_err * _POS_GAIN / POS_SCALE
         speed = np.linalg.norm(pos_action)
         if speed > _MAX_POS_ACTION:
             pos_action *= _MAX_POS_ACTION / speed
-        rot_action = np.clip(rotation_error(target_orientation(yaw), world.eef_mat[arm]) / _ROT_SCALE, -1, 1)
+        rot_action = np.clip(rotation_error(target_orientation(yaw), world.eef_mat[arm]) / ROT_SCALE, -1, 1)
         action = np.concatenate([pos_action, rot_action, [self._grip[arm]]])
         assert action.shape == (ARM_ACTION_DIM,)
         arrived = np.linalg.norm(pos_err) < move.tol and abs(yaw - current_yaw) < _YAW_TOL

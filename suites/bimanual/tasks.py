@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from suites.bimanual.scene import ROBOT_INDEX, TABLE_TOP_Z, Item, Marker, make_scene_env
-from suites.bimanual.script import CLOSED, OPEN, Move, Phase, in_turn, pick, place, together
+from suites.bimanual.scene import ROBOT_INDEX, Item, Marker, make_scene_env
+from suites.bimanual.script import Move, Phase, in_turn, pick, place, together
 from suites.bimanual.world import World
+from suites.robosuite_common import CLOSED, OPEN, TABLE_TOP
 
 Z_AXIS = np.array([0.0, 0.0, 1.0])
 RED, GREEN, BLUE, WOOD = (0.85, 0.2, 0.2, 1), (0.2, 0.75, 0.3, 1), (0.2, 0.4, 0.85, 1), (0.65, 0.5, 0.3, 1)
@@ -88,7 +89,7 @@ def xy_dist(w: World, a: str, b: str) -> float:
 
 
 def resting(w: World, obj: str, half_height: float, slack: float = 0.01) -> bool:
-    return w.pos[obj][2] < TABLE_TOP_Z + half_height + slack
+    return w.pos[obj][2] < TABLE_TOP + half_height + slack
 
 
 def inside_bin(w: World, obj: str, bin_: str, half: float, height: float) -> bool:
@@ -173,7 +174,7 @@ def _lift_box() -> TaskSpec:
     grip = 0.15  # grasp points along the box, either side of its centre
 
     def success(w, env):
-        return w.pos["box"][2] > TABLE_TOP_Z + half[2] + 0.08 and w.tilt("box") < 0.35
+        return w.pos["box"][2] > TABLE_TOP + half[2] + 0.08 and w.tilt("box") < 0.35
 
     def expert(w0):
         return together(pick(at("box", (0, grip, 0)), heading("box"), lift=0.14),
@@ -191,7 +192,7 @@ def _cube_pair(x=(-0.12, 0.0), y=(0.14, 0.28)) -> list[Item]:
 
 def _dual_lift() -> TaskSpec:
     def success(w, env):
-        return all(w.pos[c][2] > TABLE_TOP_Z + CUBE + 0.08 for c in ("cube_left", "cube_right"))
+        return all(w.pos[c][2] > TABLE_TOP + CUBE + 0.08 for c in ("cube_left", "cube_right"))
 
     def expert(w0):
         return together(pick(at("cube_left"), heading("cube_left")), pick(at("cube_right"), heading("cube_right")))
@@ -291,7 +292,7 @@ def _hold_bin_place() -> TaskSpec:
     inner = size[0] / 2 - 0.01
 
     def success(w, env):
-        return inside_bin(w, "cube_right", "bin", inner, size[2]) and w.pos["bin"][2] > TABLE_TOP_Z + 0.04
+        return inside_bin(w, "cube_right", "bin", inner, size[2]) and w.pos["bin"][2] > TABLE_TOP + 0.04
 
     def expert(w0):
         # The left hand straddles the bin's +y wall and so covers the bin's +y half: the right arm turns its

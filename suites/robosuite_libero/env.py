@@ -11,15 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from suites import robosuite_common
 from suites.base import Observation, StepResult, TaskEnv
+from suites.robosuite_common import TABLE_TOP, seed_env, upright
 from suites.robosuite_libero.expert import WaypointExpert, plan_for
-from suites.robosuite_libero.scene import (
-    BIN_SIZE,
-    MARKER_RADIUS,
-    REGION_HALF,
-    TABLE_TOP,
-    TabletopEnv,
-)
+from suites.robosuite_libero.scene import BIN_SIZE, MARKER_RADIUS, REGION_HALF, TabletopEnv
 from suites.robosuite_libero.tasks import MAX_FIXTURES, MAX_OBJECTS, Task
 
 PROPRIO_DIM = 9
@@ -32,12 +28,8 @@ def make_robosuite_env(task: Task, cameras: bool, image_size: int) -> TabletopEn
 
     controller = load_composite_controller_config(controller="BASIC")
     controller["body_parts"] = {"right": {**controller["body_parts"]["right"], "type": "OSC_POSE"}}
-    return TabletopEnv(
-        task.scene, controller_configs=controller, control_freq=20, horizon=10**9, ignore_done=True,
-        hard_reset=False, has_renderer=False, has_offscreen_renderer=cameras,
-        use_camera_obs=cameras, camera_names=list(CAMERAS.values()),
-        camera_heights=image_size, camera_widths=image_size,
-    )
+    return TabletopEnv(task.scene, controller_configs=controller,
+                       **robosuite_common.env_kwargs(cameras, image_size, list(CAMERAS.values())))
 
 
 class LiberoRSEnv(TaskEnv):
@@ -50,9 +42,7 @@ class LiberoRSEnv(TaskEnv):
 
     # --- TaskEnv -------------------------------------------------------------------------------
     def reset(self, seed: int) -> Observation:
-        # The env's own Generator drives robot joint noise and object placement; replacing it
-        # per episode makes the episode a function of the seed alone.
-        self.env.rng = np.random.default_rng(int(seed))
+        seed_env(self.env, int(seed))  # its Generator drives joint noise and object placement
         raw = self.env.reset()
         self.obj = self._resolve_object()
         self.expert = WaypointExpert(self.env, self.obj, self._plan())
@@ -142,7 +132,7 @@ class LiberoRSEnv(TaskEnv):
 
     def _observation(self, raw: dict) -> Observation:
         obs = {"state": self.state(raw)}
-        if self.cameras:  # robosuite renders OpenGL-style, bottom row first
+        if self.cameras:
             for key, camera in CAMERAS.items():
-                obs[key] = np.ascontiguousarray(raw[f"{camera}_image"][::-1])
+                obs[key] = upright(raw[f"{camera}_image"])
         return obs

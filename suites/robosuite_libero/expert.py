@@ -14,11 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 from robosuite.utils.control_utils import orientation_error
 
-from suites.robosuite_libero.scene import TABLE_TOP, TabletopEnv
+from suites.robosuite_common import CLOSED, OPEN, POS_SCALE, ROT_SCALE, TABLE_TOP
+from suites.robosuite_libero.scene import TabletopEnv
 
-OPEN, CLOSED = -1.0, 1.0
-POS_SCALE = 0.05  # metres per unit action (robosuite's OSC_POSE output_max)
-ROT_SCALE = 0.5  # radians per unit action
 GRIPPER_DOWN = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # Panda's home
 SAFE_Z = TABLE_TOP + 0.25  # travel height for the hand with nothing in it
 CLEARANCE = 0.12  # carried object's bottom above the table while travelling (bin walls: 6 cm)

@@ -25,9 +25,9 @@ from robosuite.models.objects import (
 from robosuite.models.tasks import ManipulationTask
 from robosuite.utils.transform_utils import convert_quat
 
+from suites.robosuite_common import TABLE_SIZE, TABLE_TOP
 from suites.robosuite_libero.tasks import Scene
 
-TABLE_TOP = 0.8
 BIN_SIZE = (0.16, 0.24, 0.06)  # full x, y, z of the basket (walls 1 cm)
 MARKER_RADIUS = 0.04
 REGION_HALF = (0.05, 0.2)  # a strip across the far side of the table
@@ -81,7 +81,7 @@ class TabletopEnv(ManipulationEnv):
         super()._load_model()
         robot = self.robots[0].robot_model
         robot.set_base_xpos(robot.base_xpos_offset["table"](0.8))
-        arena = TableArena(table_full_size=(0.8, 0.8, 0.05), table_offset=(0, 0, TABLE_TOP))
+        arena = TableArena(table_full_size=TABLE_SIZE, table_offset=(0, 0, TABLE_TOP))
         arena.set_origin([0, 0, 0])
         self.objects = [OBJECT_MODELS[kind](f"obj{i}_{kind}")
                         for i, kind in enumerate(self.scene.objects)]
