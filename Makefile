@@ -30,20 +30,21 @@ bench: $(STAMP)
 	$(PY) -m harness bench $(call quote,$(OVERRIDES))
 
 REPORT_ARGS := $(filter EXPERIMENT=% BENCH=% PROFILE=% results_dir=% log_run=%,$(OVERRIDES))
+REPORT = $(PY) -m harness.report $(call quote,$(REPORT_ARGS))
 
 # every method on the same foundation, then the report: make compare BENCH=mw-quick SEEDS=3
 compare: $(STAMP)
 	$(PY) -m harness bench METHOD=all $(call quote,$(filter-out METHOD=%,$(OVERRIDES)))
-	$(PY) -m harness.report $(call quote,$(REPORT_ARGS))
+	$(REPORT)
 
 # one run per grid point and seed, then the report: make sweep METHOD=consft GRID="kappa=0.1,1.0"
 sweep: $(STAMP)
 	$(PY) -m harness bench $(call quote,$(OVERRIDES))
-	$(PY) -m harness.report $(call quote,$(REPORT_ARGS))
+	$(REPORT)
 
 # tables and plots rebuilt from the MLflow store: make report [EXPERIMENT=mw-quick]
 report: $(STAMP)
-	$(PY) -m harness.report $(call quote,$(REPORT_ARGS))
+	$(REPORT)
 
 bench-train: $(STAMP)
 	$(PY) -m harness.perf train

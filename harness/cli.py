@@ -14,7 +14,14 @@ from dataclasses import dataclass
 
 import torch
 
-from harness.config import BENCH_KEYS, SHARED_BY_SWEEP_POINTS, BenchConfig, resolve, set_field
+from harness.config import (
+    BENCH_KEYS,
+    SHARED_BY_SWEEP_POINTS,
+    BenchConfig,
+    resolve,
+    run_label,
+    set_field,
+)
 from harness.errors import RetainError
 from methods import Method, get_method, method_names
 from suites import UnknownName, get_suite
@@ -31,7 +38,7 @@ class Variant:
     @property
     def label(self) -> str:
         """The run's name in tables and its directory under results/<benchmark>/."""
-        return f"{self.method.name}[{self.point}]" if self.point else self.method.name
+        return run_label(self.method.name, self.point)
 
 
 @dataclass

@@ -135,6 +135,12 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
     cfg.name = experiment_name(cfg.name, profile)
 
 
+def run_label(method: str, setting: str = "") -> str:
+    """A run's name in tables, plots and results/<benchmark>/: "consft[kappa=0.1]", or the
+    method's name alone when it runs at its defaults."""
+    return f"{method}[{setting}]" if setting else method
+
+
 def experiment_name(bench: str, profile: str) -> str:
     """Tiny and paper runs get their own results directory and MLflow experiment."""
     return f"{bench}-{profile}" if profile in ("tiny", "paper") else bench

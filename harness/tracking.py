@@ -53,17 +53,24 @@ def git_commit() -> str:
         return "unknown"
 
 
+def quiet_mlflow() -> None:
+    """Before the first MLflow client: no warnings or INFO lines (table creation) that say nothing
+    about the run, and no retry storm against a dead server, which then fails in one line."""
+    warnings.filterwarnings("ignore", module="mlflow")
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    for name in ("mlflow", "alembic"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
 class Tracker:
     """A thin layer over `MlflowClient` that knows Retain's run structure."""
 
     def __init__(self, results_dir: str, experiment: str):
-        warnings.filterwarnings("ignore", module="mlflow")
-        os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
-        os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
+        quiet_mlflow()
         from mlflow.tracking import MlflowClient
 
-        for name in ("mlflow", "alembic"):  # their INFO lines (table creation) are noise here
-            logging.getLogger(name).setLevel(logging.WARNING)
         results = Path(results_dir)
         results.mkdir(parents=True, exist_ok=True)
         self.uri = tracking_uri(results_dir)

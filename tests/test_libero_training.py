@@ -1,34 +1,15 @@
 """Training samples from a real LIBERO HDF5 file, in exactly LIBERO's layout."""
 
-import json
-
-import h5py
-import numpy as np
 import pytest
 import torch
 
 from harness.data import libero_training_data
-
-
-def _write_libero(path, lengths=(6, 9)):
-    rng = np.random.default_rng(0)
-    with h5py.File(path, "w") as f:
-        data = f.create_group("data")
-        data.attrs["problem_info"] = json.dumps({"language_instruction": "put the bowl on the plate",
-                                                 "problem_name": "libero_goal"})
-        for i, t in enumerate(lengths):
-            demo = data.create_group(f"demo_{i}")
-            demo.create_dataset("actions", data=rng.uniform(-1, 1, (t, 7)))
-            demo.create_dataset("obs/ee_states", data=rng.standard_normal((t, 6)))
-            demo.create_dataset("obs/gripper_states", data=rng.standard_normal((t, 2)))
-            demo.create_dataset("obs/joint_states", data=rng.standard_normal((t, 7)))
-            demo.create_dataset("obs/agentview_rgb", data=rng.integers(0, 255, (t, 32, 32, 3), np.uint8))
-            demo.create_dataset("obs/eye_in_hand_rgb", data=rng.integers(0, 255, (t, 32, 32, 3), np.uint8))
+from tests.libero_file import write_libero_file
 
 
 def test_libero_file_becomes_training_samples_a_policy_can_train_on(tmp_path):
-    path = tmp_path / "put_the_bowl_on_the_plate_demo.hdf5"
-    _write_libero(path)
+    path = write_libero_file(tmp_path / "put_the_bowl_on_the_plate_demo.hdf5", lengths=(6, 9),
+                             image_size=32)
     data = libero_training_data(path, chunk_size=4, cache_dir=tmp_path / "instructions")
     assert len(data) == 15
     assert data.obs["state"].shape == (15, 8) and data.obs["agentview_image"].shape == (15, 32, 32, 3)
@@ -43,10 +24,7 @@ def test_libero_file_becomes_training_samples_a_policy_can_train_on(tmp_path):
 
 
 def test_malformed_libero_file_names_the_missing_key(tmp_path):
-    path = tmp_path / "bad.hdf5"
-    _write_libero(path)
-    with h5py.File(path, "a") as f:
-        del f["data/demo_1/obs/gripper_states"]
+    path = write_libero_file(tmp_path / "bad.hdf5", drop="obs/gripper_states")
     with pytest.raises(ValueError, match="gripper_states") as info:
         libero_training_data(path, chunk_size=4)
     assert "\n" not in str(info.value)

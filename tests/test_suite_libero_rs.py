@@ -3,12 +3,11 @@ and experts: tests/test_suites.py)."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
 from suites import get_suite
+from tests.libero_file import write_libero_file
 
 h5py = pytest.importorskip("h5py")
 pytest.importorskip("robosuite")
@@ -18,10 +17,8 @@ TASKS = SUITE.task_names()
 
 
 def test_suite_shape():
-    from suites.robosuite_libero.env import STATE_DIM
-
     assert len(TASKS) >= 12
-    assert SUITE.state_dim == STATE_DIM and SUITE.action_dim == 7
+    assert SUITE.state_dim == 36 and SUITE.action_dim == 7  # env.py's documented layout
     instructions = [SUITE.instruction(t) for t in TASKS]
     assert all(instructions) and len(set(instructions)) == len(TASKS)
     with pytest.raises(ValueError, match="unknown libero_rs task"):
@@ -40,28 +37,6 @@ def test_cameras_give_uint8_images():
 
 
 # --- real LIBERO files ---------------------------------------------------------------------------
-def write_libero_file(path, lengths=(5, 7), images=True, drop: str | None = None,
-                      instruction="put the bowl on the plate"):
-    """A file in exactly LIBERO's layout; `drop` omits one dataset (relative to demo_0)."""
-    rng = np.random.default_rng(0)
-    with h5py.File(path, "w") as f:
-        data = f.create_group("data")
-        data.attrs["problem_info"] = json.dumps({"language_instruction": instruction})
-        for i, steps in enumerate(lengths):
-            demo = data.create_group(f"demo_{i}")
-            fields = {
-                "actions": rng.uniform(-1, 1, (steps, 7)),
-                "obs/ee_states": rng.normal(size=(steps, 6)),
-                "obs/gripper_states": rng.normal(size=(steps, 2)),
-                "obs/joint_states": rng.normal(size=(steps, 7)),
-            }
-            if images:
-                for key in ("agentview_rgb", "eye_in_hand_rgb"):
-                    fields[f"obs/{key}"] = rng.integers(0, 255, (steps, 8, 8, 3), dtype=np.uint8)
-            for key, value in fields.items():
-                if not (i == 0 and key == drop):
-                    demo.create_dataset(key, data=value)
-    return path
 
 
 def test_libero_reader_round_trips(tmp_path):

@@ -24,24 +24,40 @@ class Metric:
     key: str
     title: str
     higher_is_better: bool
+    note: str  # one line for the report's legend
     optional: bool = False  # shown only when some run logged it (FWT/NBT/AUC need learning curves)
 
 
 METRICS = [
-    Metric("retention", "retention", True),
-    Metric("retention_drop", "retention drop", False),
-    Metric("retention_ratio", "retention ratio", True),
-    Metric("plasticity", "plasticity", True),
-    Metric("stream_final_success", "stream final success", True),
-    Metric("forgetting", "forgetting", False),
-    Metric("bwt", "BWT", True),
-    Metric("offline_retention", "offline retention (loss ratio)", False),
-    Metric("update_frac_changed_rho0.01", "frac. changed (rho=0.01)", False),
-    Metric("update_hoyer_sparsity", "Hoyer sparsity", True),
-    Metric("update_relative_l2", "relative L2", False),
-    Metric("fwt", "FWT", True, optional=True),
-    Metric("nbt", "NBT", False, optional=True),
-    Metric("auc", "AUC", True, optional=True),
+    Metric("retention", "retention", True,
+           "foundation success after the last stage (the headline)"),
+    Metric("retention_drop", "retention drop", False,
+           "foundation success at stage 0 minus at stage k"),
+    Metric("retention_ratio", "retention ratio", True,
+           "foundation success at stage k over stage 0"),
+    Metric("plasticity", "plasticity", True,
+           "mean success on each stream task right after its own stage"),
+    Metric("stream_final_success", "stream final success", True,
+           "mean success on the stream tasks after the last stage"),
+    Metric("forgetting", "forgetting", False,
+           "mean drop of each stream task from its best earlier stage to the end"),
+    Metric("bwt", "BWT", True,
+           "mean of R[k, s_i] - R[i, s_i] over i < k; negative when later tasks erase earlier"),
+    Metric("offline_retention", "offline retention (loss ratio)", False,
+           "held-out flow-matching loss on the foundation tasks, stage k over 0"),
+    Metric("update_frac_changed_rho0.01", "frac. changed (rho=0.01)", False,
+           "fraction of scalars with |delta| > 0.01 RMS of their tensor"),
+    Metric("update_hoyer_sparsity", "Hoyer sparsity", True,
+           "Hoyer sparsity of theta_k - theta_0 (1 = one scalar moved)"),
+    Metric("update_relative_l2", "relative L2", False, "||theta_k - theta_0|| / ||theta_0||"),
+    Metric("fwt", "FWT", True,
+           "LIBERO forward transfer: mean success along each task's own learning curve",
+           optional=True),
+    Metric("nbt", "NBT", False,
+           "LIBERO negative backward transfer: best success on a task minus later success",
+           optional=True),
+    Metric("auc", "AUC", True,
+           "LIBERO area under the success curve: FWT and later success together", optional=True),
 ]
 
 

@@ -24,24 +24,6 @@ from harness.tracking import tracking_uri
 
 OWNED = (".md", ".csv", ".tex", ".png")  # the kinds of file a build writes into the report folder
 
-METRIC_NOTES = {
-    "retention": "foundation success after the last stage (the headline)",
-    "retention_drop": "foundation success at stage 0 minus at stage k",
-    "retention_ratio": "foundation success at stage k over stage 0",
-    "plasticity": "mean success on each stream task right after its own stage",
-    "stream_final_success": "mean success on the stream tasks after the last stage",
-    "forgetting": "mean drop of each stream task from its best earlier stage to the end",
-    "bwt": "mean of R[k, s_i] - R[i, s_i] over i < k; negative when later tasks erase earlier",
-    "offline_retention": "held-out flow-matching loss on the foundation tasks, stage k over 0",
-    "update_frac_changed_rho0.01": "fraction of scalars with |delta| > 0.01 RMS of their tensor",
-    "update_hoyer_sparsity": "Hoyer sparsity of theta_k - theta_0 (1 = one scalar moved)",
-    "update_relative_l2": "||theta_k - theta_0|| / ||theta_0||",
-    "fwt": "LIBERO forward transfer: mean success along each task's own learning curve",
-    "nbt": "LIBERO negative backward transfer: best success on a task minus later success",
-    "auc": "LIBERO area under the success curve: FWT and later success together",
-}
-
-
 @dataclass(frozen=True)
 class ReportSettings:
     experiment: str = "mw-quick"  # the MLflow experiment = the benchmark name
@@ -135,7 +117,7 @@ def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: in
     if notes:
         lines += ["Notes:", "", *notes, ""]
     lines += ["## Columns", ""]
-    lines += [f"- {m.title} {arrow(m)}: {METRIC_NOTES[m.key]}." for m in shown_metrics(summaries)]
+    lines += [f"- {m.title} {arrow(m)}: {m.note}." for m in shown_metrics(summaries)]
     if len(shown_metrics(summaries)) < len(METRICS):
         lines.append("- FWT, NBT and AUC (LIBERO) appear when runs log learning-curve evaluations.")
     lines += ["", "## Figures", ""]

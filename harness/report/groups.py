@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from harness.config import NOT_IN_RUN_KEY
+from harness.config import NOT_IN_RUN_KEY, run_label
 from harness.report.runs import RunRecord
 
 # config fields that do not change what a run measures (the runner's own list: where a run is
@@ -59,12 +59,10 @@ def settings(run: RunRecord) -> dict[str, str]:
 
 
 def label_of(run: RunRecord, varying: list[str]) -> str:
-    if run.sweep_point:
-        return f"{run.method}[{run.sweep_point}]"
-    if not varying:
-        return run.method
+    if run.sweep_point or not varying:
+        return run_label(run.method, run.sweep_point)
     s = settings(run)
-    return f"{run.method}[{','.join(k + '=' + s.get(k, '-') for k in varying)}]"
+    return run_label(run.method, ",".join(f"{k}={s.get(k, '-')}" for k in varying))
 
 
 def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:

@@ -10,16 +10,14 @@ from __future__ import annotations
 import ast
 import csv
 import io
-import os
 import tempfile
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from harness.errors import RetainError
-from harness.tracking import metric_key
+from harness.tracking import metric_key, quiet_mlflow
 
 PARENT_TAG = "mlflow.parentRunId"
 
@@ -57,10 +55,7 @@ class RunRecord:
 
 def open_client(uri: str):
     """An MlflowClient with quiet warnings and no retry storms against a dead server."""
-    warnings.filterwarnings("ignore", module="mlflow")
-    os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
-    os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    quiet_mlflow()
     from mlflow.tracking import MlflowClient
 
     return MlflowClient(tracking_uri=uri)

@@ -10,10 +10,9 @@ from __future__ import annotations
 import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
 from suites import register_suite
 from suites.base import TaskEnv, TaskTableSuite
-from suites.robosuite_libero.tasks import TASKS
+from suites.robosuite_libero.tasks import STATE_DIM, TASKS
 
 ACTION_DIM = 7
-STATE_DIM = 36  # checked against env.STATE_DIM in the tests; kept here so the suite loads lazily
 
 
 @register_suite("libero_rs")

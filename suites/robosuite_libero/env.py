@@ -16,10 +16,8 @@ from suites.base import Observation, StepResult, TaskEnv
 from suites.robosuite_common import TABLE_TOP, seed_env, upright
 from suites.robosuite_libero.expert import WaypointExpert, plan_for
 from suites.robosuite_libero.scene import BIN_SIZE, MARKER_RADIUS, REGION_HALF, TabletopEnv
-from suites.robosuite_libero.tasks import MAX_FIXTURES, MAX_OBJECTS, Task
+from suites.robosuite_libero.tasks import MAX_OBJECTS, PROPRIO_DIM, STATE_DIM, Task
 
-PROPRIO_DIM = 9
-STATE_DIM = PROPRIO_DIM + 7 * MAX_OBJECTS + 3 * MAX_FIXTURES
 CAMERAS = {"agentview_image": "agentview", "wrist_image": "robot0_eye_in_hand"}
 
 

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 MAX_OBJECTS = 3  # object slots in the state vector; every scene fills at most this many
 MAX_FIXTURES = 2  # fixture slots (bin, marker, region), position only
+PROPRIO_DIM = 9  # end-effector position and quaternion, two finger joints
+STATE_DIM = PROPRIO_DIM + 7 * MAX_OBJECTS + 3 * MAX_FIXTURES  # layout: env.py's docstring
 
 
 @dataclass(frozen=True)
