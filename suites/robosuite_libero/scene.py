@@ -80,7 +80,7 @@ class TabletopEnv(ManipulationEnv):
     def _load_model(self):
         super()._load_model()
         robot = self.robots[0].robot_model
-        robot.set_base_xpos(robot.base_xpos_offset["table"](0.8))
+        robot.set_base_xpos(robot.base_xpos_offset["table"](TABLE_SIZE[0]))
         arena = TableArena(table_full_size=TABLE_SIZE, table_offset=(0, 0, TABLE_TOP))
         arena.set_origin([0, 0, 0])
         self.objects = [OBJECT_MODELS[kind](f"obj{i}_{kind}")
