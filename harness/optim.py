@@ -42,7 +42,9 @@ def contiguous_parameters(params: list[torch.nn.Parameter]) -> Iterator[torch.nn
 class FlatAdamW:
     """`clip_grad_norm_` then `torch.optim.AdamW(fused=True)` for one flat parameter, then the
     gradient zeroed, without `Optimizer.step`'s per-call bookkeeping (a third of the update on
-    the tiny policy) or a separate pass to scale the gradient."""
+    the tiny policy) or a separate pass to scale the gradient. `torch._fused_adamw_` is the kernel
+    `AdamW(fused=True)` calls; `tests/test_trainer.py` holds this class to `torch.optim.AdamW`, so
+    a torch upgrade that changes the kernel fails there."""
 
     def __init__(self, flat: torch.nn.Parameter, lr: float, weight_decay: float,
                  grad_clip: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
