@@ -246,3 +246,17 @@ def test_update_histogram_uses_the_thresholds_every_run_logged():
     assert histogram.bins == ["<= 0.01", "> 0.01"]
     above = ((100 * 0.4 + 300 * 0.8) / 400 + (100 * 0.2 + 300 * 0.6) / 400) / 2  # 0.6
     np.testing.assert_allclose(histogram.fractions, [1 - above, above])
+
+
+def test_points_on_top_of_each_other_share_one_label(monkeypatch, tmp_path):
+    from harness.report import plots
+    from harness.report.aggregate import summarize
+    from harness.report.groups import Row
+
+    figures = []
+    monkeypatch.setattr(plots, "save", lambda fig, path: figures.append(fig))
+    rows = [Row(m, m, "", [fake_run(m, 0, retention=r)], []) for m, r in
+            [("sft", 0.125), ("consft", 0.13), ("er", 0.94)]]
+    plots.plasticity_retention(tmp_path / "p.png", [summarize(r) for r in rows], "mw-test")
+    texts = sorted(t.get_text() for t in figures[0].axes[0].texts)
+    assert texts == ["er", "sft / consft"]

@@ -102,13 +102,20 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
     fig = Figure(figsize=(10, 6))
     ax = fig.add_subplot()
     color = colors(summaries)
+    labels_at: list[tuple[float, float, list[str]]] = []  # one annotation per cluster of points
     for s in summaries:
         x, y = s.cells["plasticity"], s.cells["retention"]
         if not (x.n and y.n):
             continue
         ax.errorbar(x.mean, y.mean, xerr=_err(x), yerr=_err(y), fmt="o", color=color[s.label],
                     capsize=3, label=s.label)
-        ax.annotate(s.label, (x.mean, y.mean), xytext=(5, 5), textcoords="offset points",
+        near = [c for c in labels_at if abs(c[0] - x.mean) < 0.02 and abs(c[1] - y.mean) < 0.02]
+        if near:
+            near[0][2].append(s.label)  # on top of another point: one label names both
+        else:
+            labels_at.append((x.mean, y.mean, [s.label]))
+    for x, y, names in labels_at:
+        ax.annotate(" / ".join(names), (x, y), xytext=(5, 5), textcoords="offset points",
                     fontsize=8)
     frontier = sft_frontier(summaries)
     if frontier:
