@@ -260,3 +260,19 @@ def test_points_on_top_of_each_other_share_one_label(monkeypatch, tmp_path):
     plots.plasticity_retention(tmp_path / "p.png", [summarize(r) for r in rows], "mw-test")
     texts = sorted(t.get_text() for t in figures[0].axes[0].texts)
     assert texts == ["er", "sft / consft"]
+
+
+def test_one_sweep_point_at_two_base_settings_gives_two_rows():
+    import dataclasses
+
+    from harness.report.groups import build_rows
+
+    def dft(kappa, start):
+        run = fake_run("consft", 0, sweep_point="variant=dft", start=start)
+        params = {**run.params, "method.kappa": kappa, "method.variant": "dft"}
+        return dataclasses.replace(run, params=params, run_id=f"dft{kappa}")
+
+    rows, superseded = build_rows([dft("4.0", 0), dft("1.0", 1), fake_run("consft", 0)])
+    assert [r.label for r in rows] == ["consft", "consft[variant=dft kappa=1.0]",
+                                       "consft[variant=dft kappa=4.0]"]
+    assert superseded == 0

@@ -59,10 +59,10 @@ def settings(run: RunRecord) -> dict[str, str]:
 
 
 def label_of(run: RunRecord, varying: list[str]) -> str:
-    if run.sweep_point or not varying:
-        return run_label(run.method, run.sweep_point)
+    """The sweep point, then the settings that tell this run from others of its method and point."""
     s = settings(run)
-    return run_label(run.method, ",".join(f"{k}={s.get(k, '-')}" for k in varying))
+    extra = ",".join(f"{k}={s.get(k, '-')}" for k in varying)
+    return run_label(run.method, " ".join(part for part in (run.sweep_point, extra) if part))
 
 
 def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:
@@ -71,7 +71,7 @@ def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:
     by_label: dict[str, dict[int, RunRecord]] = {}
     superseded = 0
     for run in sorted(runs, key=lambda r: (r.start_time, r.run_id)):  # newest last: it wins
-        label = label_of(run, varying.get(run.method, []))
+        label = label_of(run, varying.get((run.method, run.sweep_point), []))
         seeds = by_label.setdefault(label, {})
         superseded += run.seed in seeds
         seeds[run.seed] = run
@@ -86,16 +86,18 @@ def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:
     return rows, superseded
 
 
-def _varying_settings(runs: list[RunRecord]) -> dict[str, list[str]]:
-    """Per method, the settings that differ between its untagged runs."""
-    by_method: dict[str, list[dict[str, str]]] = {}
+def _varying_settings(runs: list[RunRecord]) -> dict[tuple[str, str], list[str]]:
+    """Per method and sweep point, the settings that differ between its runs, the point's own
+    keys left out: the same point swept at two base settings (GRID="variant=dft" with kappa=1,
+    then with kappa=4) gives two rows, not one run superseding the other."""
+    groups: dict[tuple[str, str], list[dict[str, str]]] = {}
     for run in runs:
-        if not run.sweep_point:
-            by_method.setdefault(run.method, []).append(settings(run))
+        groups.setdefault((run.method, run.sweep_point), []).append(settings(run))
     out = {}
-    for method, all_settings in by_method.items():
-        keys = sorted({k for s in all_settings for k in s})
-        out[method] = [k for k in keys if len({s.get(k) for s in all_settings}) > 1]
+    for (method, point), all_settings in groups.items():
+        swept = {item.split("=", 1)[0] for item in point.split()}
+        keys = sorted({k for s in all_settings for k in s} - swept)
+        out[(method, point)] = [k for k in keys if len({s.get(k) for s in all_settings}) > 1]
     return out
 
 
