@@ -12,7 +12,6 @@ RHOS = (1e-3, 1e-2)  # the headline thresholds (DESIGN.md)
 LAYER_RHOS = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # per layer: enough for a distribution plot
 
 
-
 def hoyer_sparsity(x: torch.Tensor) -> float:
     """(sqrt(n) - |x|_1 / |x|_2) / (sqrt(n) - 1): 0 for a uniform vector, 1 for one non-zero."""
     n = x.numel()

@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from harness.config import NOT_IN_RUN_KEY, run_label
 from harness.report.runs import RunRecord
 
-# config fields that do not change what a run measures (the runner's own list: where a run is
-# written, how its rollouts are split), or that name the method and seed themselves
+# config fields that do not change what a run measures (the run key's exclusions in
+# harness.config: where a run is written, how its rollouts are split), or that name the method
+# and seed themselves
 NOT_SETTINGS = set(NOT_IN_RUN_KEY) | {"method_params", "torch_threads"}
 
 
@@ -87,17 +88,16 @@ def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:
 
 
 def _varying_settings(runs: list[RunRecord]) -> dict[tuple[str, str], list[str]]:
-    """Per method and sweep point, the settings that differ between its runs, the point's own
-    keys left out: the same point swept at two base settings (GRID="variant=dft" with kappa=1,
-    then with kappa=4) gives two rows, not one run superseding the other."""
+    """Per method and sweep point, the settings that differ between its runs (never the point's
+    own, which its runs share): the same point swept at two base settings (GRID="variant=dft"
+    with kappa=1, then with kappa=4) gives two rows, not one run superseding the other."""
     groups: dict[tuple[str, str], list[dict[str, str]]] = {}
     for run in runs:
         groups.setdefault((run.method, run.sweep_point), []).append(settings(run))
     out = {}
-    for (method, point), all_settings in groups.items():
-        swept = {item.split("=", 1)[0] for item in point.split()}
-        keys = sorted({k for s in all_settings for k in s} - swept)
-        out[(method, point)] = [k for k in keys if len({s.get(k) for s in all_settings}) > 1]
+    for group, all_settings in groups.items():
+        keys = sorted({k for s in all_settings for k in s})
+        out[group] = [k for k in keys if len({s.get(k) for s in all_settings}) > 1]
     return out
 
 
