@@ -176,6 +176,7 @@ def _run_one(variant: Variant, suite, data, foundation, seed, evaluator, tracker
 
     cfg, method = variant.cfg, variant.method
     tags = {"method": method.name, "seed": str(seed), "benchmark": cfg.name, "label": variant.label}
+    tags["needs"] = method.needs()  # past data, reference copy, task identity: the report marks it
     if variant.point:
         tags["sweep_point"] = variant.point
     child = tracker.start_run(f"{variant.label}/seed{seed}", parent_id=parent, tags=tags)

@@ -2,15 +2,65 @@
 
     loss = mean(l) + lambda/2 * sum_j w_j (theta_j - theta*_j)^2
 
-with w = 1 (L2) or a per-weight importance (EWC's Fisher). Subclasses decide when the anchor
-and the importance are taken.
+with w = 1 (L2) or a per-weight importance (EWC's Fisher, MAS's output sensitivity). Subclasses
+decide when the anchor and the importance are taken.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
+from torch.func import functional_call, grad, vmap
 
 from methods.base import Method
+
+
+class _Call(torch.nn.Module):
+    """`fn(policy, batch)` as a module's forward, so torch.func can call any policy method."""
+
+    def __init__(self, policy: torch.nn.Module, fn: Callable):
+        super().__init__()
+        self.policy, self.fn = policy, fn
+
+    def forward(self, batch):
+        return self.fn(self.policy, batch)
+
+
+def per_sample_gradient_mean(
+    policy: torch.nn.Module, batch: dict, value: Callable, transform: Callable, chunk: int = 128,
+) -> dict[str, torch.Tensor]:
+    """Mean over the batch of transform(d value(policy, sample) / d theta), per trainable weight.
+
+    `value(policy, one_sample_batch)` is a scalar; per-sample gradients come from torch.func's
+    vmap, so EWC's squared gradients and MAS's absolute ones are of each sample, not of the
+    batch mean. `batch` must fix "noise" and "time" so each value depends on the weights only.
+    """
+    call = _Call(policy, value)
+    params = {n: p.detach() for n, p in call.named_parameters() if p.requires_grad}
+    buffers = dict(call.named_buffers())
+
+    def sample_value(p, sample):
+        return functional_call(call, (p, buffers), ({k: v.unsqueeze(0) for k, v in sample.items()},))
+
+    per_sample_grads = vmap(grad(sample_value), in_dims=(None, 0))
+    n = next(iter(batch.values())).shape[0]
+    total = {k: torch.zeros_like(v) for k, v in params.items()}
+    for start in range(0, n, chunk):
+        part = {k: v[start:start + chunk] for k, v in batch.items()}
+        for k, g in per_sample_grads(params, part).items():
+            total[k] += transform(g).sum(0)
+    return {k.removeprefix("policy."): v / n for k, v in total.items()}
+
+
+def importance_batch(ctx_data, policy: torch.nn.Module, samples: int, seed: int) -> dict:
+    """Up to `samples` of a stage's samples with fixed (noise, time) draws, for an importance."""
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randperm(len(ctx_data), generator=g)[:samples]
+    batch = {k: v for k, v in ctx_data.batch(idx).items() if k not in ("index", "task_index")}
+    batch["noise"] = torch.randn(batch["actions"].shape, generator=g)
+    batch["time"] = policy.sample_time(len(idx), g)
+    return batch
 
 
 class AnchoredMethod(Method):

@@ -54,7 +54,11 @@ class Method:
 
     name: ClassVar[str] = "sft"
     Config: ClassVar[type[MethodConfig]] = MethodConfig
-    uses_past_data: ClassVar[bool] = False  # replay-style methods say True; the report shows it
+    # What a method needs beyond the current task's data and the policy; the report marks it, so a
+    # reader compares like with like (`needs()` is the tag every run logs).
+    uses_past_data: ClassVar[bool] = False  # earlier tasks' samples (a replay buffer, a memory)
+    uses_reference_copy: ClassVar[bool] = False  # a frozen copy of the network run in training
+    task_aware_eval: ClassVar[bool] = False  # the task's identity when evaluating (task masks)
     # The trainer samples the next batch on a second thread while a step's backward and optimizer
     # step run. A method whose sample_batch reads the policy (loss-based sampling, say) must say
     # False, or it would read weights that are being updated.
@@ -62,6 +66,14 @@ class Method:
 
     def __init__(self, config: MethodConfig | None = None):
         self.config = config if config is not None else self.Config()
+
+    @classmethod
+    def needs(cls) -> str:
+        """What the method needs, as the report prints it: "past data, reference copy", or
+        "none" for a method that uses only the current task's data."""
+        flags = [(cls.uses_past_data, "past data"), (cls.uses_reference_copy, "reference copy"),
+                 (cls.task_aware_eval, "task identity at evaluation")]
+        return ", ".join(name for on, name in flags if on) or "none"
 
     # -- hooks -------------------------------------------------------------------------------
 

@@ -12,10 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from torch.func import functional_call, grad, vmap
 
 from methods import register_method
-from methods.anchored import AnchoredMethod
+from methods.anchored import AnchoredMethod, importance_batch, per_sample_gradient_mean
 from methods.base import MethodConfig, TaskContext, snapshot
 
 
@@ -28,25 +27,12 @@ class EWCConfig(MethodConfig):
 
 
 def per_sample_fisher(policy: torch.nn.Module, batch: dict, chunk: int = 128) -> dict[str, torch.Tensor]:
-    """Mean over the batch of squared per-sample gradients, parameter by parameter.
+    """Mean over the batch of squared per-sample gradients of the loss, parameter by parameter.
 
     `batch` must fix "noise" and "time" so each sample's loss is a function of the weights only.
     """
-    params = {n: p.detach() for n, p in policy.named_parameters() if p.requires_grad}
-    buffers = {n: b for n, b in policy.named_buffers()}
-
-    def sample_loss(p, sample):
-        one = {k: v.unsqueeze(0) for k, v in sample.items()}
-        return functional_call(policy, (p, buffers), (one,)).squeeze(0)
-
-    per_sample_grads = vmap(grad(sample_loss), in_dims=(None, 0))
-    n = next(iter(batch.values())).shape[0]
-    total = {k: torch.zeros_like(v) for k, v in params.items()}
-    for start in range(0, n, chunk):
-        part = {k: v[start:start + chunk] for k, v in batch.items()}
-        for k, g in per_sample_grads(params, part).items():
-            total[k] += (g ** 2).sum(0)
-    return {k: v / n for k, v in total.items()}
+    return per_sample_gradient_mean(policy, batch, lambda p, one: p(one).squeeze(0),
+                                    torch.square, chunk)
 
 
 @register_method
@@ -61,12 +47,7 @@ class OnlineEWC(AnchoredMethod):
 
     def after_task(self, ctx: TaskContext) -> None:
         c = self.config
-        g = torch.Generator().manual_seed(2000 + ctx.stage)
-        idx = torch.randperm(len(ctx.data), generator=g)[: c.fisher_samples]
-        batch = {k: v for k, v in ctx.data.batch(idx).items()
-                 if k not in ("index", "task_index")}
-        batch["noise"] = torch.randn(batch["actions"].shape, generator=g)
-        batch["time"] = ctx.policy.sample_time(len(idx), g)
+        batch = importance_batch(ctx.data, ctx.policy, c.fisher_samples, seed=2000 + ctx.stage)
         new = per_sample_fisher(ctx.policy, batch, c.fisher_batch)
         if self.importance is None:
             self.importance = new

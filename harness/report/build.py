@@ -117,6 +117,12 @@ def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: in
     if notes:
         lines += ["Notes:", "", *notes, ""]
     lines += ["## Columns", ""]
+    lines.append("- needs: what a method uses beyond the current task's data, so that like is "
+                 "compared with like: past data (samples of earlier tasks: a replay buffer, a "
+                 "memory), reference copy (a frozen copy of the network run beside the policy "
+                 "in training; stored weights, as L2, EWC, MAS and merge keep, are not one), task "
+                 "identity at evaluation (the policy must be told which task it acts on); none: "
+                 "the current task's data alone.")
     lines += [f"- {m.title} {arrow(m)}: {m.note}." for m in shown_metrics(summaries)]
     if len(shown_metrics(summaries)) < len(METRICS):
         lines.append("- FWT, NBT and AUC (LIBERO) appear when runs log learning-curve evaluations.")

@@ -39,6 +39,13 @@ class Row:
         value = self.runs[0].params.get("config.lr")
         return float(value) if value is not None else None
 
+    @property
+    def needs(self) -> str:
+        """What the method needs beyond the current task's data (the newest run's `needs` tag):
+        "past data", "reference copy", "task identity at evaluation", "none"; "not logged" for
+        runs from before the tag existed."""
+        return next((r.needs for r in reversed(self.runs) if r.needs), "not logged")
+
     def seeds_text(self) -> str:
         """"3" when complete, else e.g. "2/3: missing seed 2"."""
         n, total = len(self.runs), len(self.runs) + len(self.missing_seeds)

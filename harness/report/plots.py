@@ -98,7 +98,8 @@ def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -
 
 
 def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
-    """One point per row (error bars: 95% CI); SFT's learning-rate sweep as the frontier line."""
+    """One point per row (error bars: 95% CI); SFT's learning-rate sweep as the frontier line, and
+    each method's sweep over one numeric setting (merge's alpha) as a curve in its color."""
     fig = Figure(figsize=(10, 6))
     ax = fig.add_subplot()
     color = colors(summaries)
@@ -121,6 +122,9 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
     if frontier:
         ax.plot([p[0] for p in frontier], [p[1] for p in frontier], "--", color="black",
                 linewidth=1.2, label="SFT learning-rate sweep: the frontier to beat", zorder=0)
+    for (label, first), points in sweep_curves(summaries).items():
+        ax.plot([p[0] for p in points], [p[1] for p in points], "-", color=color[first],
+                linewidth=1, alpha=0.6, label=label, zorder=0)
     points = [(s.cells["plasticity"], s.cells["retention"]) for s in summaries]
     xs = [v for x, _ in points if x.n for v in (x.mean, x.low, x.high) if v is not None]
     ys = [v for _, y in points if y.n for v in (y.mean, y.low, y.high) if v is not None]
@@ -149,6 +153,39 @@ def sft_frontier(summaries: list[RowSummary]) -> list[tuple[float, float]]:
               for s in summaries if s.row.method == "sft" and s.row.lr is not None
               and s.cells["plasticity"].n and s.cells["retention"].n}
     return sorted(points.values()) if len(points) >= 2 else []
+
+
+def sweep_curves(summaries: list[RowSummary]) -> dict[tuple[str, str], list[tuple[float, float]]]:
+    """A method's sweep over one numeric setting as a retention/plasticity curve (merge's alpha,
+    say): {(legend label, first row's label): (plasticity, retention) points by the setting's
+    value}, for sweeps with at least two points. Rows that differ in other settings as well
+    (`merge[alpha=0.5 lr=0.001]`) make curves of their own."""
+    groups: dict[tuple[str, str, str], list[tuple[float, RowSummary]]] = {}
+    for s in summaries:
+        key, sep, value = s.row.sweep_point.partition("=")
+        if not sep or " " in s.row.sweep_point or not _is_number(value):
+            continue
+        if not (s.cells["plasticity"].n and s.cells["retention"].n):
+            continue
+        rest = s.label.replace(s.row.sweep_point, "", 1)  # the other settings of the row
+        groups.setdefault((s.row.method, key, rest), []).append((float(value), s))
+    curves = {}
+    for (method, key, _), rows in groups.items():
+        if len({v for v, _ in rows}) < 2:
+            continue
+        rows.sort(key=lambda r: r[0])
+        label = f"{method}: {key} from {rows[0][0]:g} to {rows[-1][0]:g}"
+        curves[(label, rows[0][1].label)] = [(s.cells["plasticity"].mean, s.cells["retention"].mean)
+                                             for _, s in rows]
+    return curves
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _err(cell) -> np.ndarray | None:

@@ -47,6 +47,7 @@ class RunRecord:
     stream_tasks: list[str]
     success: np.ndarray  # R[stage, task], stages 0..k, tasks = foundation then stream
     layers: list[LayerUpdate]
+    needs: str = ""  # the `needs` tag ("past data, reference copy", "none"); "" if not logged
 
     @property
     def tasks(self) -> list[str]:
@@ -106,7 +107,7 @@ def _record(client, run) -> RunRecord:
         params=dict(params), metrics=dict(run.data.metrics),
         foundation_tasks=foundation, stream_tasks=stream,
         success=_success_matrix(client, run.info.run_id, foundation + stream, len(stream)),
-        layers=_layer_updates(client, run.info.run_id),
+        layers=_layer_updates(client, run.info.run_id), needs=tags.get("needs", ""),
     )
 
 

@@ -57,12 +57,14 @@ def _cells(summary: RowSummary, metrics, best: dict, bold) -> list[tuple[str, st
 def markdown_table(summaries: list[RowSummary]) -> str:
     metrics = shown_metrics(summaries)
     best = {m.key: best_labels(summaries, m) for m in metrics}
-    lines = ["| method | seeds | " + " | ".join(f"{m.title} {arrow(m)}" for m in metrics) + " |",
-             "|---|---|" + "---|" * len(metrics)]
+    lines = ["| method | seeds | needs | "
+             + " | ".join(f"{m.title} {arrow(m)}" for m in metrics) + " |",
+             "|---|---|---|" + "---|" * len(metrics)]
     for s in summaries:
         cells = [f"{mean} {interval}".strip()
                  for mean, interval in _cells(s, metrics, best, lambda v: f"**{v}**")]
-        lines.append(f"| {s.label} | {s.row.seeds_text()} | " + " | ".join(cells) + " |")
+        lines.append(f"| {s.label} | {s.row.seeds_text()} | {s.row.needs} | "
+                     + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -71,7 +73,7 @@ def csv_table(summaries: list[RowSummary]) -> str:
     metrics = shown_metrics(summaries)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    header = ["label", "method", "sweep_point", "lr", "n_seeds", "seeds", "missing_seeds"]
+    header = ["label", "method", "sweep_point", "lr", "n_seeds", "seeds", "missing_seeds", "needs"]
     for m in metrics:
         header += [f"{m.key}_mean", f"{m.key}_ci_low", f"{m.key}_ci_high", f"{m.key}_n",
                    f"{m.key}_best"]
@@ -80,7 +82,7 @@ def csv_table(summaries: list[RowSummary]) -> str:
     for s in summaries:
         row = s.row
         line = [row.label, row.method, row.sweep_point, _full(row.lr), len(row.runs),
-                ";".join(map(str, row.seeds)), ";".join(map(str, row.missing_seeds))]
+                ";".join(map(str, row.seeds)), ";".join(map(str, row.missing_seeds)), row.needs]
         for m in metrics:
             c = s.cells[m.key]
             line += [_full(c.mean if c.n else None), _full(c.low), _full(c.high), c.n,
@@ -98,14 +100,14 @@ def latex_table(summaries: list[RowSummary]) -> str:
     metrics = shown_metrics(summaries)
     best = {m.key: best_labels(summaries, m) for m in metrics}
     arrows = {"↑": r"$\uparrow$", "↓": r"$\downarrow$"}
-    lines = [r"\begin{tabular}{ll" + "r" * len(metrics) + "}", r"\toprule",
-             "method & seeds & " + " & ".join(f"{_tex(m.title)} {arrows[arrow(m)]}" for m in metrics)
+    lines = [r"\begin{tabular}{lll" + "r" * len(metrics) + "}", r"\toprule",
+             "method & seeds & needs & " + " & ".join(f"{_tex(m.title)} {arrows[arrow(m)]}" for m in metrics)
              + r" \\", r"\midrule"]
     for s in summaries:
         cells = [mean + (rf" {{\scriptsize {interval}}}" if interval else "")
                  for mean, interval in _cells(s, metrics, best, lambda v: rf"\textbf{{{v}}}")]
-        lines.append(f"{_tex(s.label)} & {_tex(s.row.seeds_text())} & " + " & ".join(cells)
-                     + r" \\")
+        lines.append(f"{_tex(s.label)} & {_tex(s.row.seeds_text())} & {_tex(s.row.needs)} & "
+                     + " & ".join(cells) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
     return "\n".join(lines) + "\n"
 

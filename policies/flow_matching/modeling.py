@@ -104,6 +104,16 @@ class FlowMatchingPolicy(nn.Module):
             t = torch.distributions.Beta(c.time_beta_alpha, c.time_beta_beta).sample((n,))
         return t * (1.0 - c.time_min) + c.time_min
 
+    def predicted_velocity(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The velocity [B, H, A] the network predicts at x_t = t * noise + (1 - t) * actions, in
+        the normalized action space, for the draws `batch["noise"]` [B, H, A] and `batch["time"]`
+        [B]: what methods compare between two networks (distillation) or differentiate (MAS)."""
+        actions = self.action_norm.normalize(batch["actions"])
+        noise, t = batch["noise"], batch["time"]
+        tt = t[:, None, None]
+        x_t = tt * noise + (1.0 - tt) * actions
+        return self.velocity(x_t, t, self.encode_observation(batch))
+
     def forward(
         self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None
     ) -> torch.Tensor:
@@ -116,9 +126,8 @@ class FlowMatchingPolicy(nn.Module):
         t = batch.get("time")
         if t is None:
             t = self.sample_time(b, generator)
-        tt = t[:, None, None]
-        x_t = tt * noise + (1.0 - tt) * actions
-        error = (self.velocity(x_t, t, self.encode_observation(batch)) - (noise - actions)) ** 2
+        velocity = self.predicted_velocity({**batch, "noise": noise, "time": t})
+        error = (velocity - (noise - actions)) ** 2
         mask = batch.get("action_mask")
         if mask is None:
             return error.mean(dim=(1, 2))
