@@ -111,7 +111,8 @@ def _tensors(obj):
 
 
 def bench_methods(rounds: int = 15, steps: int = 20) -> None:
-    """Step time of every method, interleaved round by round so machine drift cancels out."""
+    """Step time and memory of every registered method (`method_names()`, so a new method
+    appears without a change here), interleaved round by round so machine drift cancels out."""
     names = ["sft"] + [n for n in method_names() if n != "sft"]
     foundation, task = synthetic_data(6000, 1, "foundation"), synthetic_data(6000, 2)
     base = _policy("default")
@@ -140,13 +141,17 @@ def bench_methods(rounds: int = 15, steps: int = 20) -> None:
     print(f"methods on the default policy (batch 256; step time: median of {rounds} interleaved "
           f"rounds of {steps} steps; memory: peak resident growth from before the method is built "
           f"to the end of training, in a fresh process each)")
-    print("| method | step ms | time vs sft | peak RSS growth MB | memory vs sft | state held MB |")
-    print("|---|---|---|---|---|---|")
+    print("| method | needs | step ms | time vs sft | peak RSS growth MB | memory vs sft "
+          "| state held MB |")
+    print("|---|---|---|---|---|---|---|")
     for name in names:
         t = statistics.median(times[name])
         m = memory[name]
-        print(f"| {name} | {1000 * t:.1f} | {t / sft_time:.3f}x | {m['peak_rss_growth_mb']:.1f} | "
-              f"{m['peak_rss_growth_mb'] / sft_mem:.2f}x | {m['state_mb']:.2f} |")
+        print(f"| {name} | {get_method(name).needs()} | {1000 * t:.1f} | {t / sft_time:.3f}x | "
+              f"{m['peak_rss_growth_mb']:.1f} | {m['peak_rss_growth_mb'] / sft_mem:.2f}x | "
+              f"{m['state_mb']:.2f} |")
+    n_params = sum(p.numel() * p.element_size() for p in base.parameters()) / 2**20
+    print(f"the policy's parameters: {n_params:.2f} MB (a state of that size is a copy of them)")
     print("target: consft within 1.05x of sft in time, and no parameter-sized state")
 
 
