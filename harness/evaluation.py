@@ -4,12 +4,26 @@ Episodes run in lockstep, so the policy predicts one batch of action chunks for 
 that need a new chunk (across tasks: the instruction is per row). Each episode's sampling noise
 comes from its own generator, seeded by the episode, so results do not depend on how episodes
 are batched or split across worker processes.
+
+With several worker processes there are two layouts, chosen by where the policy lives:
+
+- per-worker policies (a policy on the CPU): each worker holds simulators and a copy of the
+  policy, and rolls out an interleaved share of the episodes. The CPU default, because it keeps
+  CPU results bit-identical to earlier releases: a matrix product's last bits can depend on the
+  batch's size, so the batch composition of every policy call stays as it was.
+- one central policy (a policy on an accelerator): the workers only own simulators (`EnvWorkers`)
+  and reset or step them on command, while this process runs the lockstep loop and calls
+  `policy.sample_actions` once for every slot that needs a chunk, on the device. New episodes
+  start on a chunk boundary (`align_chunks`), so there is one policy call per chunk, not up to one
+  per step. Per-episode outcomes are the same as in-process ones up to those last bits (tested
+  with the same batch composition on the CPU, where they are identical).
 """
 
 from __future__ import annotations
 
+import atexit
 import os
-from collections import deque
+from collections import Counter, deque
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -19,7 +33,7 @@ import torch
 
 from harness.datasets import TrainingData
 from harness.seeding import generator
-from suites import Suite, episode_seeds, get_suite
+from suites import Observation, StepResult, Suite, episode_seeds, get_suite
 
 
 @dataclass(frozen=True)
@@ -70,11 +84,27 @@ class EnvCache:
         self.envs.clear()
 
 
+class LocalSimulators:
+    """The slots' simulators, in this process: slot i runs `tasks[i]`, drawn from `envs`."""
+
+    def __init__(self, envs: EnvCache, tasks: list[str]):
+        pools = {task: iter(envs.for_task(task, n)) for task, n in Counter(tasks).items()}
+        self.envs = [next(pools[task]) for task in tasks]
+
+    def reset(self, items: list[tuple[int, int]]) -> list[Observation]:
+        """(slot, seed) -> that slot's first observation."""
+        return [self.envs[i].reset(seed) for i, seed in items]
+
+    def step(self, items: list[tuple[int, np.ndarray]]) -> list[StepResult]:
+        """(slot, action) -> that slot's step result."""
+        return [self.envs[i].step(action) for i, action in items]
+
+
 @dataclass
 class _Slot:
     """One simulator running its task's episodes one after another."""
 
-    env: object
+    index: int
     task: str
     episode: int | None = None  # index into the episode list; None when the slot is done
     t: int = 0
@@ -83,50 +113,83 @@ class _Slot:
     noise: torch.Generator | None = None
 
 
+def policy_device(policy) -> torch.device:
+    param = next(iter(policy.parameters()), None)
+    return param.device if param is not None else torch.device("cpu")
+
+
 @torch.no_grad()
-def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
-            settings: EvalSettings, noise_seed: int, envs: EnvCache) -> list[tuple[bool, int]]:
+def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
+             settings: EvalSettings, noise_seed: int, open_simulators, slots_per_task: int,
+             align_chunks: bool = False) -> list[tuple[bool, int]]:
     """(success, steps) per episode. Slots step in lockstep; every slot that needs a new action
     chunk gets it from one batched policy call; a finished episode's slot starts the next
-    episode of its task at once."""
+    episode of its task (at once, or with `align_chunks` at the next step that is a multiple of
+    n_action_steps, so that all slots need their chunks at the same steps: one policy call per
+    chunk instead of up to one per step, for a policy whose call costs the same at any batch).
+
+    `open_simulators(tasks)` gives the simulators of slots running `tasks` (one per slot), with
+    `reset` and `step` over lists of (slot, seed) and (slot, action)."""
     policy.eval()
+    device = policy_device(policy)
+    n_steps = settings.n_action_steps
     chunk_shape = (policy.config.chunk_size, policy.config.action_dim)
     queues: dict[str, deque[int]] = {}
     for i, ep in enumerate(episodes):
         queues.setdefault(ep.task, deque()).append(i)
-    slots = [_Slot(env, task) for task, queue in queues.items()
-             for env in envs.for_task(task, min(len(queue), settings.envs_per_task))]
+    tasks = [task for task, queue in queues.items() for _ in range(min(len(queue), slots_per_task))]
+    sims = open_simulators(tasks)
+    slots = [_Slot(i, task) for i, task in enumerate(tasks)]
     outcomes: list[tuple[bool, int] | None] = [None] * len(episodes)
 
-    def start_next(slot: _Slot) -> None:
-        queue = queues[slot.task]
-        slot.episode = queue.popleft() if queue else None
-        if slot.episode is not None:
+    def start_next(waiting: list[_Slot]) -> None:
+        for slot in waiting:
+            queue = queues[slot.task]
+            slot.episode = queue.popleft() if queue else None
+        starting = [s for s in waiting if s.episode is not None]
+        seeds = [episodes[s.episode].seed for s in starting]
+        for slot, obs in zip(starting, sims.reset([(s.index, seed) for s, seed in zip(starting, seeds)])):
             ep = episodes[slot.episode]
-            slot.t, slot.obs = 0, slot.env.reset(ep.seed)
+            slot.t, slot.obs = 0, obs
             slot.noise = generator("eval-noise", noise_seed, ep.task, ep.seed)
 
-    for slot in slots:
-        start_next(slot)
+    waiting, clock = list(slots), 0  # slots between episodes
     while True:
-        live = [s for s in slots if s.episode is not None]
-        if not live:
+        running = [s for s in slots if s.episode is not None]
+        if waiting and (not align_chunks or not running or clock % n_steps == 0):
+            start_next(waiting)
+            waiting = []
+            running = [s for s in slots if s.episode is not None]
+        if not running:
             break
-        need = [s for s in live if s.t % settings.n_action_steps == 0]
+        need = [s for s in running if s.t % n_steps == 0]
         if need:
-            batch = {k: torch.as_tensor(np.stack([s.obs[k] for s in need])) for k in need[0].obs}
-            batch["instruction"] = torch.as_tensor(np.stack([instructions[s.task] for s in need]))
+            batch = {k: torch.as_tensor(np.stack([s.obs[k] for s in need])).to(device)
+                     for k in need[0].obs}
+            batch["instruction"] = torch.as_tensor(
+                np.stack([instructions[s.task] for s in need])).to(device)
             noise = torch.stack([torch.randn(chunk_shape, generator=s.noise) for s in need])
-            for s, chunk in zip(need, policy.sample_actions(batch, noise=noise).numpy()):
+            chunks = policy.sample_actions(batch, noise=noise.to(device))
+            for s, chunk in zip(need, chunks.float().cpu().numpy()):
                 s.plan = chunk
-        for s in live:
-            result = s.env.step(s.plan[s.t % settings.n_action_steps])
+        results = sims.step([(s.index, s.plan[s.t % n_steps]) for s in running])
+        clock += 1
+        for s, result in zip(running, results):
             s.t += 1
             s.obs = result.obs
             if result.success or s.t >= settings.max_episode_steps:
                 outcomes[s.episode] = (result.success, s.t)
-                start_next(s)
+                s.episode = None
+                waiting.append(s)
     return outcomes
+
+
+def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
+            settings: EvalSettings, noise_seed: int, envs: EnvCache,
+            align_chunks: bool = False) -> list[tuple[bool, int]]:
+    """(success, steps) per episode, on simulators in this process (`lockstep`)."""
+    return lockstep(policy, episodes, instructions, settings, noise_seed,
+                    lambda tasks: LocalSimulators(envs, tasks), settings.envs_per_task, align_chunks)
 
 
 def evaluation_episodes(suite_name: str, tasks: list[str], n: int) -> list[EvalEpisode]:
@@ -141,28 +204,124 @@ def group_by_task(episodes: list[EvalEpisode], outcomes: list[tuple[bool, int]]
     return {t: TaskEvaluation(t, tuple(s for s, _ in v), sum(n for _, n in v)) for t, v in by_task.items()}
 
 
-class Evaluator:
-    """Evaluates a policy on a benchmark's tasks, in this process or in `workers` processes.
+class EnvWorkers:
+    """Worker processes that own simulators (an EnvCache each, kept between stages) and only
+    reset and step them on command; the policy stays in the calling process."""
 
-    Workers are started once and keep their simulators between stages; each receives the
-    policy's weights and an interleaved share of the episodes.
+    def __init__(self, suite_name: str, settings: EvalSettings, workers: int, torch_threads: int = 1):
+        ctx = get_context("spawn")
+        self._conns, self._procs = [], []
+        for _ in range(workers):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_env_worker, args=(child, suite_name, settings, torch_threads),
+                               daemon=True)
+            proc.start()
+            child.close()
+            self._conns.append(parent)
+            self._procs.append(proc)
+
+    def __len__(self) -> int:
+        return len(self._conns)
+
+    def open(self, tasks: list[str]) -> RemoteSimulators:
+        return RemoteSimulators(self, tasks)
+
+    def call(self, method: str, per_worker: dict[int, list]) -> dict[int, list]:
+        """Send every worker its items, then collect the replies: the workers run in parallel."""
+        for w, items in per_worker.items():
+            self._conns[w].send((method, items))
+        replies = {}
+        for w in per_worker:
+            ok, payload = self._conns[w].recv()
+            if not ok:
+                raise RuntimeError(f"evaluation worker {w} failed in {method}: {payload}")
+            replies[w] = payload
+        return replies
+
+    def close(self) -> None:
+        for conn in self._conns:
+            try:
+                conn.send(("close", None))
+            except (BrokenPipeError, OSError):
+                pass
+        for proc in self._procs:
+            proc.join(timeout=30)
+            if proc.is_alive():
+                proc.terminate()
+        self._conns, self._procs = [], []
+
+
+class RemoteSimulators:
+    """The slots' simulators, spread over `EnvWorkers` round robin (slot i on worker i % n), so
+    every worker holds at most ceil(slots of a task / n) simulators of that task."""
+
+    def __init__(self, workers: EnvWorkers, tasks: list[str]):
+        n = len(workers)
+        self._workers = workers
+        self._where = [(i % n, i // n) for i in range(len(tasks))]  # slot -> (worker, its slot)
+        workers.call("open", {w: tasks[w::n] for w in range(n) if tasks[w::n]})
+
+    def reset(self, items: list[tuple[int, int]]) -> list[Observation]:
+        return self._scatter("reset", items)
+
+    def step(self, items: list[tuple[int, np.ndarray]]) -> list[StepResult]:
+        return self._scatter("step", items)
+
+    def _scatter(self, method: str, items: list) -> list:
+        per_worker: dict[int, list] = {}
+        for slot, arg in items:
+            w, local = self._where[slot]
+            per_worker.setdefault(w, []).append((local, arg))
+        replies = {w: iter(r) for w, r in self._workers.call(method, per_worker).items()}
+        return [next(replies[self._where[slot][0]]) for slot, _ in items]
+
+
+class Evaluator:
+    """Evaluates a policy on a benchmark's tasks, in this process or with `workers` processes.
+
+    With one worker, everything runs here. With more, simulators live in worker processes,
+    started once and kept between stages, in one of two ways (see the module docstring):
+    per-worker policies (each worker gets the weights and an interleaved share of the episodes;
+    the default for a policy on the CPU) or one central policy (workers only step simulators;
+    the default for a policy on an accelerator). `central_policy` overrides the choice.
     """
 
-    def __init__(self, suite: Suite, settings: EvalSettings, workers: int = 1, torch_threads: int = 1):
+    def __init__(self, suite: Suite, settings: EvalSettings, workers: int = 1, torch_threads: int = 1,
+                 central_policy: bool | None = None):
         self.suite, self.settings, self.workers = suite, settings, max(1, workers)
+        self.torch_threads, self.central_policy = torch_threads, central_policy
         self._local = EnvCache(suite, settings) if self.workers == 1 else None
-        self._pool = None
-        if self.workers > 1:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"),
-                                             initializer=_init_worker,
-                                             initargs=(suite.name, settings, torch_threads))
+        self._pool: ProcessPoolExecutor | None = None
+        self._env_workers: EnvWorkers | None = None
 
     def evaluate(self, policy, tasks: list[str], instructions: dict[str, np.ndarray],
                  noise_seed: int) -> dict[str, TaskEvaluation]:
         episodes = evaluation_episodes(self.suite.name, tasks, self.settings.episodes)
+        on_accelerator = policy_device(policy).type != "cpu"
+        central = on_accelerator if self.central_policy is None else self.central_policy
+        if self._local is not None:
+            outcomes = rollout(policy, episodes, instructions, self.settings, noise_seed,
+                               self._local, align_chunks=on_accelerator)
+        elif central:
+            outcomes = self._central_rollout(policy, episodes, instructions, noise_seed)
+        else:
+            outcomes = self._per_worker_rollout(policy, episodes, instructions, noise_seed)
+        return group_by_task(episodes, outcomes)
+
+    def _central_rollout(self, policy, episodes, instructions, noise_seed) -> list[tuple[bool, int]]:
+        if self._env_workers is None:
+            self._env_workers = EnvWorkers(self.suite.name, self.settings, self.workers,
+                                           self.torch_threads)
+        return lockstep(policy, episodes, instructions, self.settings, noise_seed,
+                        self._env_workers.open, self.settings.envs_per_task * self.workers,
+                        align_chunks=True)
+
+    def _per_worker_rollout(self, policy, episodes, instructions, noise_seed) -> list[tuple[bool, int]]:
         if self._pool is None:
-            outcomes = rollout(policy, episodes, instructions, self.settings, noise_seed, self._local)
-            return group_by_task(episodes, outcomes)
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"),
+                                             initializer=_init_worker,
+                                             initargs=(self.suite.name, self.settings,
+                                                       self.torch_threads))
         shares = [s for s in (episodes[i::self.workers] for i in range(self.workers)) if s]
         # a copy: sending tensors to workers moves their storage to shared memory, and during a
         # learning-curve evaluation the parameters are views into the trainer's flat buffer
@@ -172,11 +331,13 @@ class Evaluator:
         outcomes: dict[EvalEpisode, tuple[bool, int]] = {}
         for share, future in zip(shares, futures):
             outcomes.update(zip(share, future.result()))
-        return group_by_task(episodes, [outcomes[ep] for ep in episodes])
+        return [outcomes[ep] for ep in episodes]
 
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(cancel_futures=True)
+        if self._env_workers is not None:
+            self._env_workers.close()
         if self._local is not None:
             self._local.close()
 
@@ -195,6 +356,7 @@ def _init_worker(suite_name: str, settings: EvalSettings, torch_threads: int) ->
     torch.set_num_threads(torch_threads)
     _WORKER["envs"] = EnvCache(get_suite(suite_name), settings)
     _WORKER["settings"] = settings
+    atexit.register(_WORKER["envs"].close)  # renderers freed before EGL is torn down
 
 
 def _worker_rollout(config, weights, episodes, instructions, noise_seed):
@@ -205,6 +367,27 @@ def _worker_rollout(config, weights, episodes, instructions, noise_seed):
     policy = _WORKER["policy"]
     policy.load_state_dict(weights)
     return rollout(policy, episodes, instructions, _WORKER["settings"], noise_seed, _WORKER["envs"])
+
+
+def _env_worker(conn, suite_name: str, settings: EvalSettings, torch_threads: int) -> None:
+    """An `EnvWorkers` process: open slots, reset and step them, until told to close."""
+    _init_worker(suite_name, settings, torch_threads)
+    sims = None
+    while True:
+        try:
+            method, items = conn.recv()
+        except EOFError:  # the evaluator's process is gone
+            return
+        if method == "close":
+            return
+        try:
+            if method == "open":
+                sims, reply = LocalSimulators(_WORKER["envs"], items), None
+            else:
+                reply = getattr(sims, method)(items)
+            conn.send((True, reply))
+        except Exception as exc:  # reported to the evaluator, which raises it there
+            conn.send((False, f"{type(exc).__name__}: {exc}"))
 
 
 @torch.no_grad()

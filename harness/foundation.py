@@ -20,6 +20,7 @@ from methods import Method, TaskContext
 from policies import FlowMatchingConfig, FlowMatchingPolicy
 from policies.flow_matching.modeling import ARCHITECTURE_VERSION
 from suites import Suite
+from suites.base import CAMERA_KEYS
 
 FOUNDATION_VERSION = 4  # bump when the training code changes what a cached checkpoint holds
 
@@ -33,7 +34,7 @@ class Foundation:
 
 
 def policy_config(cfg: BenchConfig, suite: Suite) -> FlowMatchingConfig:
-    image_keys = ("agentview_image", "wrist_image") if cfg.cameras else ()
+    image_keys = CAMERA_KEYS if cfg.cameras else ()
     return FlowMatchingConfig(state_dim=suite.state_dim, action_dim=suite.action_dim,
                               size=cfg.policy_size, chunk_size=cfg.chunk_size,
                               n_action_steps=cfg.n_action_steps, image_keys=image_keys,

@@ -15,8 +15,14 @@ from dataclasses import dataclass
 import numpy as np
 
 Observation = dict[str, np.ndarray]
-"""Observation keys: "state" (float32 vector: proprioception and object state) always;
-"agentview_image" and "wrist_image" (uint8 HxWx3) when a suite renders cameras."""
+"""Observation keys: "state" (float32 vector: proprioception and object state) always; with
+cameras on, the `CAMERA_KEYS` images too (uint8 [S, S, 3], upright: row 0 is the top)."""
+
+AGENTVIEW, EYE_IN_HAND = "agentview_rgb", "eye_in_hand_rgb"
+CAMERA_KEYS = (AGENTVIEW, EYE_IN_HAND)
+"""Camera observation keys, named as in LIBERO's datasets (obs/agentview_rgb, obs/eye_in_hand_rgb):
+a fixed view of the workspace and a camera on the gripper. Every suite renders both, so a policy
+trained on one suite's images reads another's."""
 
 
 class UnknownName(ValueError):
@@ -70,7 +76,9 @@ class Suite(ABC):
     def instruction(self, task: str) -> str: ...
 
     @abstractmethod
-    def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv: ...
+    def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv:
+        """The task's simulator; with `cameras` its observations hold the `CAMERA_KEYS` images
+        at `image_size` x `image_size`, and without, nothing is rendered."""
 
     def check_task(self, task: str) -> str:
         if task not in self.task_names():

@@ -5,6 +5,10 @@ Actions are 14-d, [left arm 7 | right arm 7], each arm = OSC_POSE deltas (dx, dy
 "left"/"right" are as seen by the robots (who face +x): left = robosuite robot 1 at y = +0.25.
 The state layout (`STATE_LAYOUT`) is shared by all tasks; slots a task does not use are zeros.
 See README.md in this folder for the task list and the experts' success table.
+
+Cameras (on request only): `agentview_rgb` is robosuite's "agentview", facing the robots across the
+table; `eye_in_hand_rgb` holds both wrist cameras side by side, [left | right], each half as wide
+as the image, so every suite has the same two camera keys.
 """
 
 from __future__ import annotations
@@ -14,8 +18,8 @@ import functools
 import numpy as np
 
 from suites import register_suite
-from suites.base import Observation, StepResult, TaskEnv, TaskTableSuite
-from suites.bimanual.scene import env_kwargs, to_robosuite_action
+from suites.base import AGENTVIEW, EYE_IN_HAND, Observation, StepResult, TaskEnv, TaskTableSuite
+from suites.bimanual.scene import AGENTVIEW_CAMERA, WRIST_CAMERAS, env_kwargs, to_robosuite_action
 from suites.bimanual.script import Script, target_orientation
 from suites.bimanual.tasks import TASKS
 from suites.bimanual.world import read_world
@@ -101,7 +105,10 @@ class BimanualEnv(TaskEnv):
     def _observation(self) -> Observation:
         obs = {"state": state_vector(self._world, self.spec)}
         if self._cameras:
-            obs["agentview_image"] = upright(self._raw_obs["agentview_image"])
+            raw = self._raw_obs
+            obs[AGENTVIEW] = upright(raw[f"{AGENTVIEW_CAMERA}_image"])
+            obs[EYE_IN_HAND] = upright(np.concatenate(
+                [raw[f"{WRIST_CAMERAS[arm]}_image"] for arm in ("left", "right")], axis=1))
         return obs
 
 

@@ -32,12 +32,23 @@ def to_robosuite_action(action: np.ndarray) -> np.ndarray:
 
 
 
+# robosuite cameras: the fixed front view, and each arm's wrist camera (robot 1 = left, 0 = right)
+AGENTVIEW_CAMERA = "agentview"
+WRIST_CAMERAS = {arm: f"robot{ROBOT_INDEX[arm]}_eye_in_hand" for arm in ARMS}
+
+
 def env_kwargs(cameras: bool, image_size: int) -> dict:
-    """Keyword arguments shared by every robosuite env of the suite (20 Hz OSC_POSE deltas)."""
+    """Keyword arguments shared by every robosuite env of the suite (20 Hz OSC_POSE deltas).
+
+    With cameras: the agent view at image_size x image_size, and the two wrist cameras at half
+    the width each (same height and vertical field of view), to be set side by side."""
     from robosuite import load_composite_controller_config
 
+    names = [AGENTVIEW_CAMERA, WRIST_CAMERAS["left"], WRIST_CAMERAS["right"]]
+    half = image_size // 2
     return dict(
-        robosuite_common.env_kwargs(cameras, image_size, "agentview"),
+        robosuite_common.env_kwargs(cameras, image_size, names),
+        camera_widths=[image_size, half, image_size - half],
         robots=["Panda", "Panda"],
         env_configuration="parallel",
         controller_configs=load_composite_controller_config(robot="Panda"),  # OSC_POSE, delta, base frame

@@ -3,6 +3,11 @@
 Observations are Meta-World's 39-d goal-observable state (hand, gripper, two objects, the previous
 frame of those, goal). Initial states are seeded per episode through Meta-World's own
 `seeded_rand_vec` path, so `reset(seed)` is reproducible across processes.
+
+Cameras (on request only): `agentview_rgb` is Meta-World's "corner" camera, a fixed view of the
+table and the arm from the front left, and `eye_in_hand_rgb` its "gripperPOV" camera, mounted on
+the hand between the fingers. "corner" is defined with its up axis pointing down, so its image is
+rotated by 180 degrees to come out upright (a rotation, not a flip: left stays left).
 """
 
 from __future__ import annotations
@@ -10,11 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 from suites import register_suite
-from suites.base import Observation, StepResult, Suite, TaskEnv
+from suites.base import AGENTVIEW, EYE_IN_HAND, Observation, StepResult, Suite, TaskEnv
 from suites.metaworld.instructions import INSTRUCTIONS
 
 _STATE_DIM = 39
 _ACTION_DIM = 4
+# observation key -> (Meta-World camera, whether its image must be turned by 180 degrees)
+_CAMERAS = {AGENTVIEW: ("corner", True), EYE_IN_HAND: ("gripperPOV", False)}
 
 
 def _env_classes():
@@ -48,9 +55,10 @@ class MetaWorldEnv(TaskEnv):
         self._obs = raw
         obs = {"state": raw.astype(np.float32)}
         if self._renderer is not None:
-            for key, camera in (("agentview_image", "corner"), ("wrist_image", "gripperPOV")):
+            for key, (camera, turn) in _CAMERAS.items():
                 self._renderer.update_scene(self._env.data, camera=camera)
-                obs[key] = self._renderer.render().copy()
+                image = self._renderer.render()  # a new array per call
+                obs[key] = np.ascontiguousarray(image[::-1, ::-1]) if turn else image
         return obs
 
     def reset(self, seed: int) -> Observation:
