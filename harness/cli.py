@@ -7,10 +7,12 @@ profile, method, every override, every task name, and the tracking store.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
+import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -18,11 +20,16 @@ from harness.config import (
     BENCH_KEYS,
     SHARED_BY_SWEEP_POINTS,
     BenchConfig,
+    base_config,
+    changed_settings,
     resolve,
     run_label,
     set_field,
+    setting_text,
 )
 from harness.errors import RetainError
+from harness.executors import available_cores
+from harness.jobs import Job
 from methods import Method, get_method, method_names
 from suites import UnknownName, get_suite
 
@@ -34,11 +41,16 @@ class Variant:
     cfg: BenchConfig  # this run's resolved config (a sweep may change lr, say)
     method: Method
     point: str = ""  # "kappa=0.1 w_min=0.05", or "" outside a sweep
+    spec: str = ""  # the method as named on the command line (a job imports it from this)
+    params: dict = field(default_factory=dict)  # its hyperparameters given on the command line
+    changed: str = ""  # other result-changing settings away from the benchmark's: "lr=0.0001"
 
     @property
     def label(self) -> str:
-        """The run's name in tables and its directory under results/<benchmark>/."""
-        return run_label(self.method.name, self.point)
+        """The run's name in tables and its directory under results/<benchmark>/: the sweep
+        point, then any other setting that differs from the benchmark's, so runs that differ
+        in what they measure never share a directory."""
+        return run_label(self.method.name, " ".join(p for p in (self.point, self.changed) if p))
 
 
 @dataclass
@@ -64,6 +76,7 @@ def plan(args: list[str]) -> Plan:
     from harness.runner import make_method
 
     cfg = resolve(args)
+    base = base_config(args)
     try:
         suite = get_suite(cfg.suite)
         for task in cfg.foundation_tasks + cfg.stream_tasks:
@@ -99,132 +112,165 @@ def plan(args: list[str]) -> Plan:
             if not any(key in c.Config.__dataclass_fields__ for c in classes):
                 make_method(classes[0], {key: params[key]})
         label = " ".join(f"{k}={v}" for k, v in point.items())
-        for cls in classes:
+        for name, cls in zip(names, classes):
             own = {k: v for k, v in params.items() if k in cls.Config.__dataclass_fields__}
-            variants.append(Variant(run_cfg, make_method(cls, own), label))
+            method = make_method(cls, own)
+            changed = _changed(run_cfg, base, method, own, point)
+            variants.append(Variant(run_cfg, method, label, name, own, changed))
     return Plan(cfg, variants)
 
 
+def _changed(run_cfg: BenchConfig, base: BenchConfig, method: Method, own: dict,
+             point: dict) -> str:
+    """Settings given outside GRID that change this run's results: benchmark settings away
+    from the benchmark's YAML (after its profile), method hyperparameters away from defaults."""
+    changed = changed_settings(run_cfg, base)
+    defaults = dataclasses.asdict(type(method.config)())
+    hyper = method.hyperparameters()
+    changed.update({k: setting_text(hyper[k]) for k in own if hyper[k] != defaults.get(k)})
+    return " ".join(f"{k}={v}" for k, v in changed.items() if k not in point)
+
+
 def bench(args: list[str]) -> int:
+    """Demos, then each seed's foundation, then one job per (seed, variant) on the executor."""
     from harness.data import prepare_data
-    from harness.evaluation import Evaluator
-    from harness.foundation import load_or_train_foundation
+    from harness.executors import make_executor, plan_slots
+    from harness.jobs import (
+        FoundationJob,
+        Tracking,
+        build_foundation,
+        invocation_key,
+        provenance_params,
+        run_job,
+    )
     from harness.run_outputs import summary_table
-    from harness.stages import eval_settings
-    from harness.tracking import BatchedMetrics, Tracker, git_commit, package_versions
+    from harness.tracking import Tracker, git_commit, package_versions
 
     p = plan(args)
     cfg = p.cfg
     torch.set_num_threads(cfg.torch_threads)
     tracker = Tracker(cfg.results_dir, experiment=cfg.name)
+    suite = get_suite(cfg.suite)
     provenance = {"git_commit": git_commit(), "versions": package_versions(),
                   "command": " ".join(args), "seeds": cfg.seed_list()}
-    parent = tracker.start_run(f"{cfg.name}:{cfg.method}", tags={"benchmark": cfg.name})
-    tracker.log_params(parent, _provenance_params(cfg, provenance))
+    keyed = [(seed, variant, _job_key(variant, suite, seed)) for seed in cfg.seed_list()
+             for variant in p.variants]
+    parent = tracker.continue_or_start_run(invocation_key(cfg.name, [k for *_, k in keyed]),
+                                           f"{cfg.name}:{cfg.method}", tags={"benchmark": cfg.name})
+    tracker.log_params(parent, provenance_params(cfg, provenance))
+    tracking = Tracking(tracker.uri, parent, provenance)
+    slots = plan_slots(cfg, len(keyed))
     start = time.time()
-    status = "FAILED"
+    status, children = "FAILED", []
     try:
-        suite = get_suite(cfg.suite)
         print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
               f"{len(cfg.stream_tasks)} stream tasks, runs {[v.label for v in p.variants]}, "
-              f"seeds {cfg.seed_list()}", flush=True)
+              f"seeds {cfg.seed_list()}; {len(keyed)} jobs, executor {cfg.executor} "
+              f"({_slots_text(cfg, slots)})", flush=True)
         data = prepare_data(cfg, suite)
         print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
-        results = []
-        with Evaluator(suite, eval_settings(cfg), cfg.workers(), cfg.torch_threads) as evaluator:
-            for seed in cfg.seed_list():
-                curve = BatchedMetrics(tracker, parent, prefix=f"foundation_seed{seed}/")
-                foundation = load_or_train_foundation(cfg, suite, data, seed, evaluator, log=curve)
-                curve.flush()
-                print(f"[retain] seed {seed}: foundation ready, stage-0 foundation success "
-                      f"{_foundation_success(cfg, foundation.stage0):.3f} "
-                      f"({time.time() - start:.0f}s)", flush=True)
-                for variant in p.variants:
-                    r = _run_one(variant, suite, data, foundation, seed, evaluator, tracker,
-                                 parent, provenance)
-                    results.append(r)
-                    print(f"[retain] {variant.label} seed {seed}: foundation success "
-                          f"{r.metrics['foundation_success_stage0']:.3f} -> "
-                          f"{r.metrics['retention']:.3f}, plasticity {r.metrics['plasticity']:.3f} "
-                          f"({time.time() - start:.0f}s)", flush=True)
+        jobs = []
+        for seed, variant, key in keyed:
+            child = _child_run(tracker, variant, seed, key, parent, provenance)
+            children.append(child)
+            jobs.append(Job(variant.cfg, variant.spec, variant.params, variant.point,
+                            variant.label, seed, key, child, tracking, slots.eval_workers))
+        executor = make_executor(cfg, slots, suite, data)
+        try:
+            foundations = [FoundationJob(cfg, seed, tracking, slots.eval_workers)
+                           for seed in cfg.seed_list()]
+            for i, success in executor.run(build_foundation, foundations):
+                print(f"[retain] seed {foundations[i].seed}: foundation ready, stage-0 "
+                      f"foundation success {success:.3f} ({time.time() - start:.0f}s)", flush=True)
+            results = [None] * len(jobs)
+            progress = Progress(len(jobs))
+            for i, r in executor.run(run_job, jobs):
+                results[i] = r
+                print(f"[retain] {progress.done_one()} {jobs[i].label} seed {r.seed}: "
+                      f"foundation success {r.metrics['foundation_success_stage0']:.3f} -> "
+                      f"{r.metrics['retention']:.3f}, plasticity {r.metrics['plasticity']:.3f} "
+                      f"({progress.times()})", flush=True)
+        finally:
+            executor.close()
         print("\n" + summary_table(results))
         for r in results:
             print(f"  {r.method} seed {r.seed}: {r.run_dir}/")
         print(f"  MLflow: {tracker.uri} (experiment {cfg.name!r}); `make ui` to browse")
+        print(f"[retain] {len(jobs)} jobs in {_duration(time.time() - start)} wall time, "
+              f"{_cpu_text(time.time() - start)}", flush=True)
         status = "FINISHED"
         return 0
+    except KeyboardInterrupt:
+        status = "KILLED"
+        raise
     finally:
+        for child in children:  # a job that did not end its run (its worker was lost) failed
+            if tracker.status(child) == "RUNNING":
+                tracker.end_run(child, "FAILED" if status != "KILLED" else status)
         tracker.end_run(parent, status)
 
 
-def _foundation_success(cfg: BenchConfig, record) -> float:
-    return sum(record.success[t] for t in cfg.foundation_tasks) / len(cfg.foundation_tasks)
+class Progress:
+    """Jobs done of all, and the time left estimated from the rate so far."""
+
+    def __init__(self, total: int):
+        self.total, self.done, self.start = total, 0, time.time()
+
+    def done_one(self) -> str:
+        self.done += 1
+        return f"{self.done}/{self.total}"
+
+    def times(self) -> str:
+        elapsed = time.time() - self.start
+        left = elapsed / self.done * (self.total - self.done)
+        return f"{_duration(elapsed)} elapsed, about {_duration(left)} left"
 
 
-def _provenance_params(cfg: BenchConfig, provenance: dict) -> dict:
-    """The resolved config, git commit and package versions, as MLflow params."""
-    return {**{f"config.{k}": v for k, v in cfg.as_dict().items()},
-            "git_commit": provenance["git_commit"],
-            **{f"version.{k}": v for k, v in provenance["versions"].items()}}
+def _duration(seconds: float) -> str:
+    minutes, secs = divmod(int(round(seconds)), 60)
+    return f"{minutes}m{secs:02d}s" if minutes else f"{secs}s"
 
 
-def _run_one(variant: Variant, suite, data, foundation, seed, evaluator, tracker, parent,
-             provenance):
-    from harness.run_outputs import write_run_outputs
-    from harness.runner import run_stream
-    from harness.tracking import BatchedMetrics
+def _cpu_text(wall: float) -> str:
+    """CPU time of this process and its finished children over wall time: how busy the cores
+    were (a speed-up's other half)."""
+    usage = os.times()
+    cpu = usage.user + usage.system + usage.children_user + usage.children_system
+    cores = available_cores()
+    return (f"CPU time {_duration(cpu)}, utilisation {cpu / wall / cores:.0%} of {cores} cores"
+            if wall > 0 else "")
+
+
+def _slots_text(cfg: BenchConfig, slots) -> str:
+    if cfg.executor == "ray":
+        return "Ray tasks" + (f", {cfg.jobs} at once" if cfg.jobs else "")
+    return f"{slots.parallel} at once, {slots.eval_workers} evaluation workers each"
+
+
+def _job_key(variant: Variant, suite, seed: int) -> str:
+    from harness.foundation import foundation_key
+    from harness.jobs import job_key
+    from harness.runner import run_settings_key
+
+    run_key = run_settings_key(variant.cfg, variant.method, foundation_key(variant.cfg, suite, seed))
+    return job_key(run_key, seed, variant.label)
+
+
+def _child_run(tracker, variant: Variant, seed: int, key: str, parent: str, provenance) -> str:
+    """The job's MLflow run: the one an earlier (killed) attempt started, or a new one."""
+    from harness.jobs import provenance_params
 
     cfg, method = variant.cfg, variant.method
     tags = {"method": method.name, "seed": str(seed), "benchmark": cfg.name, "label": variant.label}
     tags["needs"] = method.needs()  # past data, reference copy, task identity: the report marks it
     if variant.point:
         tags["sweep_point"] = variant.point
-    child = tracker.start_run(f"{variant.label}/seed{seed}", parent_id=parent, tags=tags)
-    tracker.log_params(child, {**_provenance_params(cfg, provenance),
+    child = tracker.continue_or_start_run(key, f"{variant.label}/seed{seed}", parent_id=parent,
+                                          tags=tags)
+    tracker.log_params(child, {**provenance_params(cfg, provenance),
                                **{f"method.{k}": v for k, v in method.hyperparameters().items()},
                                "method": method.name, "seed": seed})
-    logger = BatchedMetrics(tracker, child)
-    status = "FAILED"
-    try:
-        logged: set[int] = set()
-
-        def log_stage(record) -> None:
-            logged.add(record.stage)
-            tracker.log_metric_rows(child, [(record.stage, _stage_metrics(cfg, record))])
-            if record.curve:
-                tracker.log_metric_rows(child, [(n, {f"curve_success/{record.task}": v})
-                                                for n, v in zip(record.curve_steps, record.curve)])
-
-        def on_stage(record) -> None:
-            print(f"[retain] {variant.label} seed {seed}: stage {record.stage} ({record.task}) done, "
-                  f"foundation success {_foundation_success(cfg, record):.3f}", flush=True)
-            logger.flush()
-            log_stage(record)
-
-        log_stage(foundation.stage0)
-        result = run_stream(cfg, suite, data, foundation, method, seed, evaluator, variant.label,
-                            logger, on_stage)
-        for record in result.stages:  # stages resumed from checkpoints were not logged yet
-            if record.stage not in logged:
-                log_stage(record)
-        logger.flush()
-        tracker.log_metrics(child, result.metrics, step=len(cfg.stream_tasks))
-        paths = write_run_outputs(cfg, result, provenance)
-        for path in paths.values():
-            tracker.log_artifact(child, path)
-        status = "FINISHED"
-        return result
-    finally:
-        tracker.end_run(child, status)
-
-
-def _stage_metrics(cfg, record) -> dict[str, float]:
-    m = {f"success/{t}": v for t, v in record.success.items()}
-    m.update({f"heldout_loss/{t}": v for t, v in record.heldout_loss.items()})
-    m.update({f"update/{k}": v for k, v in record.updates.items()})
-    m["foundation_success"] = _foundation_success(cfg, record)
-    m["stage_train_loss"] = record.train_loss
-    return m
+    return child
 
 
 def main(argv: list[str] | None = None) -> int:

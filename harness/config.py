@@ -59,6 +59,8 @@ class BenchConfig:
     eval_workers: int = 0  # evaluation processes; 0 means one per core
     eval_envs_per_task: int = 2  # simulators per task and worker (memory against batching)
     learning_curve_every: int = 0  # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
+    executor: str = "local"  # where a comparison's jobs run: serial, local (processes) or ray
+    jobs: int = 0  # jobs at once; 0: as many as the cores allow given each job's workers
 
     def workers(self) -> int:
         return self.eval_workers if self.eval_workers > 0 else (os.cpu_count() or 1)
@@ -80,12 +82,14 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "heldout_demos_per_task", "eval_episodes", "max_episode_steps", "foundation_steps",
     "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras", "image_size",
     "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress", "torch_threads",
-    "eval_workers", "eval_envs_per_task"})
+    "eval_workers", "eval_envs_per_task", "executor", "jobs"})
+
+EXECUTORS = ("serial", "local", "ray")
 
 # settings that cannot change a run's results (where it is written, how rollouts are split);
 # torch_threads stays in: the summation order of a matrix product depends on it
 NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
-                  "eval_envs_per_task", "results_dir", "cache_dir")
+                  "eval_envs_per_task", "results_dir", "cache_dir", "executor", "jobs")
 
 
 def benchmark_names() -> list[str]:
@@ -139,6 +143,19 @@ def run_label(method: str, setting: str = "") -> str:
     """A run's name in tables, plots and results/<benchmark>/: "consft[kappa=0.1]", or the
     method's name alone when it runs at its defaults."""
     return f"{method}[{setting}]" if setting else method
+
+
+def setting_text(value: Any) -> str:
+    """A setting's value as a label shows it: 0.0001, a,b for a list."""
+    return ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+
+
+def changed_settings(cfg: BenchConfig, base: BenchConfig) -> dict[str, str]:
+    """The result-changing benchmark settings where `cfg` differs from `base` (the benchmark's
+    YAML after its profile): what tells a run with `lr=1e-4` from one at the defaults."""
+    ours, theirs = cfg.as_dict(), base.as_dict()
+    return {k: setting_text(v) for k, v in ours.items()
+            if k not in NOT_IN_RUN_KEY and k not in ("name", "method_params") and v != theirs[k]}
 
 
 def experiment_name(bench: str, profile: str) -> str:
@@ -209,8 +226,9 @@ def parse_overrides(args: list[str]) -> dict[str, str]:
     return out
 
 
-def resolve(args: list[str]) -> BenchConfig:
-    """The full config from command-line arguments such as `METHOD=sft PROFILE=quick lr=1e-4`."""
+def base_config(args: list[str]) -> BenchConfig:
+    """The benchmark's YAML after its profile, before any other override: the defaults a run's
+    label is relative to."""
     overrides = parse_overrides(args)
     bench, profile = pop_bench_and_profile(overrides)
     cfg = load_benchmark(bench)
@@ -218,6 +236,14 @@ def resolve(args: list[str]) -> BenchConfig:
         apply_profile(cfg, profile)
     else:
         cfg.profile = profile
+    return cfg
+
+
+def resolve(args: list[str]) -> BenchConfig:
+    """The full config from command-line arguments such as `METHOD=sft PROFILE=quick lr=1e-4`."""
+    cfg = base_config(args)
+    overrides = parse_overrides(args)
+    pop_bench_and_profile(overrides)
     for upper, lower in (("METHOD", "method"), ("SEED", "seed"), ("SEEDS", "seeds"), ("GRID", "grid")):
         if overrides.get(upper, "") != "":
             set_field(cfg, lower, overrides.pop(upper))
@@ -229,4 +255,9 @@ def resolve(args: list[str]) -> BenchConfig:
             cfg.method_params[key.removeprefix("method.")] = value
     if cfg.seeds < 1:
         raise RetainError(f"bad value {cfg.seeds} for seeds: expected at least 1")
+    if cfg.executor not in EXECUTORS:
+        raise RetainError(f"unknown executor {cfg.executor!r}; valid: {', '.join(EXECUTORS)}")
+    if cfg.jobs < 0:
+        raise RetainError(f"bad value {cfg.jobs} for jobs: expected 0 (as many as the cores "
+                          "allow) or more")
     return cfg

@@ -63,7 +63,9 @@ def make_method(cls: type[Method], params: dict) -> Method:
 
 
 def run_dir(cfg: BenchConfig, label: str, seed: int) -> Path:
-    return Path(cfg.results_dir) / cfg.name / label.replace(" ", "_") / f"seed{seed}"
+    """results/<benchmark>/<label>/seed<k>: runs that differ in a result-changing setting have
+    different labels ("sft", "sft[lr=0.0001]"), so they never share a directory."""
+    return Path(cfg.results_dir) / cfg.name / label.replace(" ", "_").replace("/", "_") / f"seed{seed}"
 
 
 def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: Foundation,
@@ -94,6 +96,9 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         policy.load_state_dict(saved["policy"])
         method.load_state_dict(saved["method"])
         stages += [StageRecord(**r) for r in saved["records"]]
+        if resumed < len(cfg.stream_tasks):
+            print(f"[retain] {label} seed {seed}: resuming after stage {resumed} of "
+                  f"{len(cfg.stream_tasks)}", flush=True)
     layer_rows: list[dict] = []
     settings = TrainSettings(cfg.steps_per_task, cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.grad_clip)
     for stage, task in enumerate(cfg.stream_tasks, start=1):

@@ -1,8 +1,11 @@
-"""MLflow tracking: one parent run per benchmark invocation, one child per (method, seed).
+"""MLflow tracking: one parent run per benchmark invocation, one child per job (method, seed).
 
 The default store is SQLite under `results/` (artifacts beside it); `MLFLOW_TRACKING_URI` points
 at a shared `mlflow server` instead. The experiment is created before any run starts, so several
 processes logging to one SQLite file do not race to create it.
+
+Runs are found again by a key tag (`retain.key`): a job that is retried or rerun after a kill
+continues its own run instead of leaving a RUNNING one behind and starting another.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from harness.errors import RetainError
 PACKAGES = ("torch", "numpy", "mujoco", "metaworld", "robosuite", "mlflow", "h5py",
             "sentence-transformers")
 _MAX_BATCH = 1000  # MLflow's limit on metrics per log_batch call
+KEY_TAG = "retain.key"  # a job's (or an invocation's) identity: a rerun continues its run
 
 
 def tracking_uri(results_dir: str) -> str:
@@ -69,13 +73,13 @@ def quiet_mlflow() -> None:
 class Tracker:
     """A thin layer over `MlflowClient` that knows Retain's run structure."""
 
-    def __init__(self, results_dir: str, experiment: str):
+    def __init__(self, results_dir: str, experiment: str, uri: str | None = None):
         quiet_mlflow()
         from mlflow.tracking import MlflowClient
 
         results = Path(results_dir)
         results.mkdir(parents=True, exist_ok=True)
-        self.uri = tracking_uri(results_dir)
+        self.uri = uri or tracking_uri(results_dir)
         # Creating the client creates the SQLite schema: processes starting together take turns.
         with open(results / ".mlflow.lock", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
@@ -106,10 +110,39 @@ class Tracker:
             tags["mlflow.parentRunId"] = parent_id
         return self.client.create_run(self.experiment_id, run_name=name, tags=tags).info.run_id
 
+    def continue_or_start_run(self, key: str, name: str, parent_id: str | None = None,
+                              tags: dict[str, str] | None = None) -> str:
+        """The run tagged with `key` (set RUNNING again, whatever a kill left it as), or a new one.
+
+        Why: a job retried after a lost worker, or a command rerun after a kill, is the same
+        job; one run per job keeps the store free of RUNNING orphans and duplicates."""
+        found = self.client.search_runs([self.experiment_id],
+                                        filter_string=f"tags.`{KEY_TAG}` = '{key}'",
+                                        order_by=["attribute.start_time DESC"], max_results=1)
+        tags = {**(tags or {}), KEY_TAG: key}
+        if not found:
+            return self.start_run(name, parent_id, tags)
+        run_id = found[0].info.run_id
+        self.client.update_run(run_id, status="RUNNING")
+        if parent_id is not None:
+            tags["mlflow.parentRunId"] = parent_id
+        self.set_tags(run_id, tags)
+        return run_id
+
+    def status(self, run_id: str) -> str:
+        return self.client.get_run(run_id).info.status
+
+    def logged_steps(self, run_id: str, key: str) -> set[int]:
+        """The steps at which `key` was logged: what a continued run need not log again."""
+        return {m.step for m in self.client.get_metric_history(run_id, metric_key(key))}
+
     def log_params(self, run_id: str, params: dict[str, Any]) -> None:
+        """Log params the run does not have yet (MLflow params cannot change; a continued run
+        keeps the ones it started with)."""
         from mlflow.entities import Param
 
-        items = [Param(k, str(v)[:6000]) for k, v in sorted(params.items())]
+        have = self.client.get_run(run_id).data.params
+        items = [Param(k, str(v)[:6000]) for k, v in sorted(params.items()) if k not in have]
         for i in range(0, len(items), 100):
             self.client.log_batch(run_id, params=items[i:i + 100])
 
