@@ -1,0 +1,88 @@
+"""The goal-driven expert: one skill plan per BDDL goal predicate, run as a waypoint machine.
+
+The plan for a goal is built when the goal comes up (from the scene as it is then) and rebuilt
+when the carried object slips or the plan ends without the goal holding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from robosuite.utils.control_utils import orientation_error
+
+from suites.libero.experts.scene import GRIPPER_DOWN, Scene
+from suites.libero.experts.skills import OPEN, Phase
+from suites.libero.experts.planner import plan_goal
+
+POS_SCALE, ROT_SCALE = 0.05, 0.5  # LIBERO's OSC_POSE: metres and radians per unit action
+SLIP_STEPS = 3  # steps without a grasp before a carry counts as dropped
+
+
+def _yaw_mat(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ GRIPPER_DOWN
+
+
+class GoalExpert:
+    """`act(raw_obs)` returns LIBERO's 7-d action for the next step toward the BDDL goal."""
+
+    def __init__(self, env, goals: list[list[str]]):
+        self.scene = Scene(env)
+        self.goals = goals
+        self.goal = 0
+        self.plan: list[Phase] = []
+        self.i = self.t = self.slipping = 0
+        self._next_goal()
+
+    def _next_goal(self) -> None:
+        while self.goal < len(self.goals) and self.scene.check(self.goals[self.goal]):
+            self.goal += 1
+        self._replan()
+
+    def _replan(self) -> None:
+        self.plan = plan_goal(self.scene, self.goals[self.goal]) if self.goal < len(
+            self.goals) else []
+        self.i = self.t = self.slipping = 0
+
+    def act(self, raw_obs: dict | None = None) -> np.ndarray:
+        phase = self._advance()
+        if phase is None:
+            return np.array([0, 0, 0, 0, 0, 0, OPEN], dtype=np.float32)
+        scene = self.scene
+        delta = (phase.target() - scene.eef_pos()) / POS_SCALE
+        norm = np.linalg.norm(delta)
+        if norm > phase.speed:
+            delta *= phase.speed / norm
+        rot = orientation_error(_yaw_mat(phase.yaw()), scene.eef_mat()) / ROT_SCALE
+        return np.clip(np.concatenate([delta, rot, [phase.grip]]), -1, 1).astype(np.float32)
+
+    def _advance(self) -> Phase | None:
+        scene = self.scene
+        for _ in range(4 * max(len(self.plan), 1) + 8):
+            if not self.plan:
+                return None
+            phase = self.plan[self.i]
+            if phase.carrying and self.t > 2:
+                self.slipping = 0 if scene.is_grasped(phase.carrying) else self.slipping + 1
+                if self.slipping >= SLIP_STEPS:
+                    self._replan()
+                    continue
+            if phase.steps:
+                finished = self.t >= phase.steps
+            elif phase.done:
+                finished = phase.done() or self.t >= phase.limit
+            else:
+                reached = np.linalg.norm(phase.target() - scene.eef_pos()) < phase.tol
+                finished = reached or self.t >= phase.limit
+            if not finished:
+                self.t += 1
+                return phase
+            if self.i < len(self.plan) - 1:
+                self.i, self.t, self.slipping = self.i + 1, 0, 0
+                continue
+            # The plan is over: on to the next goal, or try this one again.
+            if scene.check(self.goals[self.goal]):
+                self.goal += 1
+                self._next_goal()
+            else:
+                self._replan()
+        return self.plan[self.i] if self.plan else None

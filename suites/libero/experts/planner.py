@@ -1,0 +1,38 @@
+"""From one BDDL goal predicate to a skill plan, using the scene as it is now."""
+
+from __future__ import annotations
+
+from suites.libero.experts.scene import Scene
+from suites.libero.experts.skills import Grasp, Phase, pick, place
+
+CARRY_CLEARANCE = 0.07  # the carried object's bottom above the higher of start and goal surface
+RELEASE_GAP = 0.012  # the object's bottom above its resting surface when the hand opens
+
+
+def _placement(scene: Scene, relation: str, target: str):
+    """(xy function, resting-height function) for putting something in/on `target`."""
+    if scene.is_site(target):
+        size = scene.site_size(target)
+        xy = lambda: scene.pos(target)[:2]  # noqa: E731
+        if relation == "in":
+            return xy, lambda: scene.pos(target)[2] + size[2] + RELEASE_GAP
+        return xy, lambda: scene.pos(target)[2] + RELEASE_GAP
+    return (lambda: scene.pos(target)[:2]), lambda: scene.box(target)[1][2] + RELEASE_GAP
+
+
+def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
+    relation = goal[0]
+    if relation in ("in", "on"):
+        obj, target = goal[1], goal[2]
+        grasp = Grasp.plan(scene, obj)
+        xy, rest_z = _placement(scene, relation, target)
+        bottom = scene.box(obj)[0][2]
+        travel = max(bottom, rest_z()) + CARRY_CLEARANCE + grasp.below
+        travel = max(travel, scene.eef_pos()[2] - 0.05)
+        return pick(scene, obj, grasp, travel) + place(scene, obj, grasp, xy, rest_z, travel)
+    raise KeyError(f"no skill for goal predicate {goal!r}")
+
+
+def supported(goal: list[str]) -> bool:
+    return goal[0] in ("in", "on")
+

@@ -1,0 +1,110 @@
+"""Privileged read-outs from a live LIBERO env: poses, object boxes, sites, joints, grasp.
+
+Everything the expert knows comes from here, read from the simulator each step, so a plan
+follows objects that move (settling, being pushed, slipping in the hand).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+GRIPPER_DOWN = np.diag([1.0, -1.0, -1.0])  # the Panda's hand pointing down, fingers along world y
+
+
+def _descendants(model, root: int) -> set[int]:
+    bodies = {root}
+    for b in range(root + 1, model.nbody):
+        if model.body_parentid[b] in bodies:
+            bodies.add(b)
+    return bodies
+
+
+class Scene:
+    """Read-only view of a LIBERO problem env (`OffScreenRenderEnv.env`)."""
+
+    def __init__(self, env):
+        self.env = env.env if hasattr(env, "env") and hasattr(env.env, "sim") else env
+        self.sim = self.env.sim
+        self.model = self.sim.model._model
+        self.data = self.sim.data._data
+        self._geoms: dict[str, list[int]] = {}
+
+    # -- the robot -------------------------------------------------------------------------
+    def eef_pos(self) -> np.ndarray:
+        return np.array(self.data.site_xpos[self.env.robots[0].eef_site_id["right"]])
+
+    def eef_mat(self) -> np.ndarray:
+        return np.array(self.data.site_xmat[self.env.robots[0].eef_site_id["right"]]).reshape(3, 3)
+
+    def is_grasped(self, name: str) -> bool:
+        robot = self.env.robots[0]
+        return bool(self.env._check_grasp(robot.gripper["right"], self.thing(name)))
+
+    # -- objects, fixtures and sites -------------------------------------------------------
+    def thing(self, name: str):
+        return self.env.get_object(name)
+
+    def is_site(self, name: str) -> bool:
+        return name in self.env.object_sites_dict
+
+    def site_parent(self, name: str) -> str:
+        return self.env.object_states_dict[name].parent_name
+
+    def body_id(self, name: str) -> int:
+        return self.env.obj_body_id[name]
+
+    def pos(self, name: str) -> np.ndarray:
+        """An object's body position, or a site's position."""
+        if self.is_site(name):
+            return np.array(self.sim.data.get_site_xpos(name))
+        return np.array(self.data.xpos[self.body_id(name)])
+
+    def mat(self, name: str) -> np.ndarray:
+        if self.is_site(name):
+            return np.array(self.sim.data.get_site_xmat(name))
+        return np.array(self.data.xmat[self.body_id(name)]).reshape(3, 3)
+
+    def site_size(self, name: str) -> np.ndarray:
+        return np.array(self.env.object_sites_dict[name].size, dtype=float)
+
+    def _collision_geoms(self, name: str) -> list[int]:
+        if name not in self._geoms:
+            m = self.model
+            bodies = _descendants(m, self.body_id(name))
+            self._geoms[name] = [g for g in range(m.ngeom) if m.geom_bodyid[g] in bodies
+                                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        return self._geoms[name]
+
+    def _corners(self, name: str) -> np.ndarray:
+        """World corners of the boxes around the object's collision geoms."""
+        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+        out = []
+        for g in self._collision_geoms(name):
+            c, h = self.model.geom_aabb[g][:3], self.model.geom_aabb[g][3:]
+            rot = self.data.geom_xmat[g].reshape(3, 3)
+            out.append(self.data.geom_xpos[g] + (c + signs * h) @ rot.T)
+        return np.concatenate(out)
+
+    def box(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned bounds (low, high) of an object's collision geometry."""
+        pts = self._corners(name)
+        return pts.min(0), pts.max(0)
+
+    def footprint(self, name: str) -> tuple[float, float, float]:
+        """(narrow width, long width, yaw of the narrow axis) of the object's box in its frame."""
+        rot = self.mat(name)
+        local = (self._corners(name) - self.pos(name)) @ rot
+        ext = local.max(0) - local.min(0)
+        narrow = 0 if ext[0] <= ext[1] else 1
+        axis = rot[:, narrow]
+        return float(ext[narrow]), float(ext[1 - narrow]), float(np.arctan2(axis[1], axis[0]))
+
+    def joint_qpos(self, name: str) -> float:
+        """The first joint of an articulated object (or of a site's joints)."""
+        joints = (self.env.object_sites_dict[name].joints if self.is_site(name)
+                  else self.thing(name).joints)
+        return float(self.sim.data.qpos[self.sim.model.get_joint_qpos_addr(joints[0])])
+
+    def check(self, predicate: list[str]) -> bool:
+        """One BDDL goal predicate, evaluated the way LIBERO's success check does."""
+        return bool(self.env._eval_predicate(predicate))

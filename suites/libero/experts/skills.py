@@ -1,0 +1,109 @@
+"""Skills as phase lists: waypoints for the hand, recomputed every step from privileged state.
+
+A `Phase` is one end-effector target (position and yaw, hand pointing down) plus a gripper
+command. It ends when the target is reached, after a fixed number of steps (gripper phases), on
+its own test, or when it runs out of steps (a blocked move gives up and the plan goes on).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from suites.libero.experts.scene import Scene
+
+OPEN, CLOSED = -1.0, 1.0
+MAX_PHASE_STEPS = 60
+FINGER_REACH = 0.035  # grip point below an object's top for tall things (finger pad length)
+GRIPPER_SPAN = 0.075  # widest thing the open hand takes in across its fingers
+
+
+@dataclass
+class Phase:
+    name: str
+    target: Callable[[], np.ndarray]  # end-effector position to move to
+    grip: float
+    yaw: Callable[[], float]
+    steps: int = 0  # >0: a timed phase (open/close the gripper) instead of a move
+    tol: float = 0.01
+    carrying: str | None = None  # this object must stay in hand, or the skill starts over
+    done: Callable[[], bool] | None = None
+    speed: float = 1.0  # action-norm cap for the translation
+    limit: int = MAX_PHASE_STEPS
+
+
+def _wrap_half_turn(yaw: float) -> float:
+    """The hand is symmetric under a half turn: take the equivalent yaw in [-pi/2, pi/2)."""
+    return (yaw + np.pi / 2) % np.pi - np.pi / 2
+
+
+@dataclass
+class Grasp:
+    """How to hold one object: where the grip point sits relative to the object's body."""
+
+    offset: np.ndarray  # grip point minus the object's body position, world frame, at plan time
+    yaw: float
+    below: float  # from the grip point down to the object's bottom
+
+    @classmethod
+    def plan(cls, scene: Scene, obj: str) -> Grasp:
+        lo, hi = scene.box(obj)
+        narrow, wide, narrow_yaw = scene.footprint(obj)
+        centre = (lo + hi) / 2
+        body = scene.pos(obj)
+        height = hi[2] - lo[2]
+        grip_z = max(lo[2] + min(0.012, height / 2), hi[2] - FINGER_REACH)
+        # Fingers close along the hand's y axis; at yaw 0 that is world y.
+        if narrow <= GRIPPER_SPAN and wide > 1.15 * narrow:
+            yaw = _wrap_half_turn(narrow_yaw - np.pi / 2)
+        else:
+            yaw = 0.0
+        offset = np.array([centre[0] - body[0], centre[1] - body[1], grip_z - body[2]])
+        if narrow > GRIPPER_SPAN:  # a bowl or other wide thing: pinch its rim nearest the robot
+            rim_z = hi[2] - 0.015
+            offset = np.array([centre[0] - body[0] - (hi[0] - lo[0]) / 2 + 0.012,
+                               centre[1] - body[1], rim_z - body[2]])
+            yaw = np.pi / 2
+        return cls(offset, float(yaw), float(body[2] + offset[2] - lo[2]))
+
+
+def _at(xy: Callable[[], np.ndarray], z) -> Callable[[], np.ndarray]:
+    return lambda: np.array([*xy()[:2], z() if callable(z) else z])
+
+
+def pick(scene: Scene, obj: str, grasp: Grasp, travel_z: float) -> list[Phase]:
+    """Above the object at travel height, down to the grip point, close, lift to travel height."""
+    def grip_point():
+        return scene.pos(obj) + grasp.offset
+
+    yaw = lambda: grasp.yaw  # noqa: E731
+    above = min(travel_z, grip_point()[2] + 0.12)
+    return [
+        Phase("above", _at(grip_point, max(above, grip_point()[2] + 0.06)), OPEN, yaw, tol=0.015),
+        Phase("descend", grip_point, OPEN, yaw, tol=0.008, speed=0.6),
+        Phase("close", lambda: scene.eef_pos(), CLOSED, yaw, steps=12),
+        Phase("lift", _at(scene.eef_pos, travel_z), CLOSED, yaw, carrying=obj, tol=0.02,
+              speed=0.7),
+    ]
+
+
+def place(scene: Scene, obj: str, grasp: Grasp, target_xy: Callable[[], np.ndarray],
+          rest_z: Callable[[], float], travel_z: float) -> list[Phase]:
+    """Carry so the object sits over `target_xy`, lower its bottom to `rest_z`, let go, rise."""
+    def hand_xy_obj():  # where the hand goes so the object's grip point ends over the target
+        obj_xy = scene.pos(obj)[:2]
+        return target_xy()[:2] + scene.eef_pos()[:2] - obj_xy
+
+    yaw = lambda: grasp.yaw  # noqa: E731
+    release_z = lambda: rest_z() + grasp.below  # noqa: E731
+    return [
+        Phase("carry", _at(hand_xy_obj, travel_z), CLOSED, yaw, carrying=obj, tol=0.012,
+              speed=0.8, limit=80),
+        Phase("lower", _at(hand_xy_obj, release_z), CLOSED, yaw, carrying=obj, tol=0.01,
+              speed=0.5),
+        Phase("release", lambda: scene.eef_pos(), OPEN, yaw, steps=8),
+        Phase("retreat", lambda: np.array([*scene.eef_pos()[:2], travel_z]), OPEN, yaw,
+              tol=0.02),
+    ]
