@@ -58,6 +58,8 @@ class Distill(Method):
     def before_task(self, ctx: TaskContext) -> None:
         if self.config.reference == "previous":
             self._copy(ctx.policy)
+        else:  # built now from a loaded checkpoint, before the trainer lays out the weights
+            self.reference(ctx.policy)
 
     def reference(self, policy: torch.nn.Module) -> torch.nn.Module:
         """The frozen copy; rebuilt from its weights after a checkpoint was loaded."""
@@ -75,8 +77,9 @@ class Distill(Method):
         are drawn in the order and from the generator the policy's forward would use, so the
         flow-matching losses are those plain SFT would compute."""
         batch = super().sample_batch(ctx, batch_size, generator)
-        batch["noise"] = torch.randn(batch["actions"].shape, generator=generator)
-        batch["time"] = ctx.policy.sample_time(batch_size, generator)
+        actions = batch["actions"]
+        batch["noise"] = torch.randn(actions.shape, generator=generator, device=actions.device)
+        batch["time"] = ctx.policy.sample_time(len(actions), generator)
         return batch
 
     def penalty(self, batch: dict, policy: torch.nn.Module) -> torch.Tensor:
