@@ -67,6 +67,7 @@ class PackNet(Method):
         weights = prunable_weights(policy)
         if self.owner is None:
             self.owner = {n: torch.full(p.shape, FREE, dtype=torch.int16) for n, p in weights.items()}
+        self.owner = {n: self.owner[n].to(p.device) for n, p in weights.items()}  # as loaded: CPU
         return weights
 
     def _hold(self, weights: dict[str, nn.Parameter], trainable: dict[str, torch.Tensor]) -> None:
@@ -149,7 +150,7 @@ class PackNet(Method):
             yield
             return
         level = stream.index(task) + 1 if task in stream else 0
-        weights = prunable_weights(policy)
+        weights = self._ensure_owner(policy)
         saved = {n: p.detach().clone() for n, p in weights.items()}
         with torch.no_grad():
             for n, p in weights.items():
