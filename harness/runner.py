@@ -124,7 +124,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         result = train_stage(context(stage, task, data.train[task]), method, settings,
                              generator(seed, "stage", stage), log,
                              after_step=learning_curve if cfg.learning_curve_every > 0 else None)
-        record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, task)
+        record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, task, method)
         record.train_loss = result.final_loss
         if cfg.learning_curve_every > 0:
             record.curve_steps = curve_steps + [cfg.steps_per_task]

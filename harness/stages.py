@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from harness.config import BenchConfig
 from harness.data import BenchmarkData
 from harness.evaluation import EvalSettings, Evaluator, heldout_loss
 from harness.seeding import derive_seed
+from methods import Method
 
 
 @dataclass
@@ -39,15 +41,29 @@ def eval_settings(cfg: BenchConfig) -> EvalSettings:
 
 
 def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: BenchmarkData, seed: int,
-                   stage: int, task: str) -> StageRecord:
-    """Roll out every task (foundation and stream) and measure every held-out loss."""
+                   stage: int, task: str, method: Method | None = None) -> StageRecord:
+    """Roll out every task (foundation and stream) and measure every held-out loss.
+
+    A task-aware method (PackNet) is evaluated group by group inside its `evaluation_view`: the
+    foundation tasks together, then each stream task; any other method in one call, as before.
+    """
     tasks = cfg.foundation_tasks + cfg.stream_tasks
-    results = evaluator.evaluate(policy, tasks, data.instructions, noise_seed=derive_seed(seed, "eval"))
+    noise_seed = derive_seed(seed, "eval")
+    aware = method is not None and method.task_aware_eval
+    groups = [cfg.foundation_tasks] + [[t] for t in cfg.stream_tasks] if aware else [tasks]
+    results, heldout = {}, {}
+    for group in (g for g in groups if g):
+        view = (method.evaluation_view(policy, group[0], cfg.stream_tasks) if aware
+                else contextlib.nullcontext())
+        with view:
+            results.update(evaluator.evaluate(policy, group, data.instructions, noise_seed))
+            heldout.update({t: heldout_loss(policy, data.heldout[t], derive_seed("heldout", t))
+                            for t in group})
     return StageRecord(
         stage, task,
         success={t: results[t].success_rate for t in tasks},
         episodes={t: list(results[t].successes) for t in tasks},
-        heldout_loss={t: heldout_loss(policy, data.heldout[t], derive_seed("heldout", t)) for t in tasks},
+        heldout_loss={t: heldout[t] for t in tasks},
         env_steps=sum(results[t].steps for t in tasks),
     )
 

@@ -97,6 +97,7 @@ def train_stage(
                     f"{ctx.stage} ({ctx.task}), step {step}; the last finished stage is kept"
                 )
             loss.backward()
+            method.after_backward(policy)  # SFT's does nothing: a projection or a mask goes here
             timer.mark("backward")
             optimizer.step()  # clips, updates, zeroes the gradient
             method.after_step(policy)

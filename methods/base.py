@@ -7,16 +7,21 @@ The trainer calls, for each task of the stream (and once for the foundation stag
         batch = sample_batch(ctx, batch_size, generator)
         per_sample = policy(batch)    [B] flow-matching losses
         loss, stats = loss(per_sample, batch, policy)
-        loss.backward(); optimizer.step()
+        loss.backward()
+        after_backward(policy)        the gradient is in the parameters' .grad: project or mask it
+        optimizer.step()
         after_step(policy)
     after_task(ctx)                   what a method keeps (a replay buffer, a Fisher) it takes here
 
 A method sees a task's data only during that task's stage; what it keeps must live in its own
-`state_dict`, which the checkpoint of every stage stores.
+`state_dict`, which the checkpoint of every stage stores. At every stage's evaluation, each task
+is rolled out inside `evaluation_view(policy, task, stream)`: a method that keeps per-task
+weights (PackNet) shows the policy as it was for that task.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -88,11 +93,23 @@ class Method:
         """Reduce per-sample losses [B] to the scalar to minimise, plus stats to log."""
         return per_sample.mean(), {}
 
+    def after_backward(self, policy: torch.nn.Module) -> None:
+        """Called between backward and the optimizer step, with the gradient in each parameter's
+        `.grad` (the trainer's `.grad` are views into one flat buffer: change them in place)."""
+
     def after_step(self, policy: torch.nn.Module) -> None:
         """Called after every optimizer step."""
 
     def after_task(self, ctx: TaskContext) -> None:
         """Called after training on a task, with the trained policy and the task's data."""
+
+    def evaluation_view(self, policy: torch.nn.Module, task: str, stream: list[str]
+                        ) -> contextlib.AbstractContextManager:
+        """The policy as it should be evaluated on `task` (a foundation task or one of `stream`),
+        entered around that task's rollouts and held-out loss; by default the policy as it is.
+        A method that overrides it sets `task_aware_eval = True`. Foundation tasks share one view:
+        stage 0 trained them together."""
+        return contextlib.nullcontext()
 
     # -- checkpoints -------------------------------------------------------------------------
 
