@@ -17,7 +17,8 @@ from multiprocessing import get_context
 import numpy as np
 import torch
 
-from harness.datasets import TrainingData
+from harness.datasets import TrainingData, instruction_entries
+from harness.device import autocast
 from harness.seeding import generator
 from suites import Suite, episode_seeds, get_suite
 
@@ -90,6 +91,7 @@ def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndar
     chunk gets it from one batched policy call; a finished episode's slot starts the next
     episode of its task at once."""
     policy.eval()
+    device = next(policy.parameters()).device
     chunk_shape = (policy.config.chunk_size, policy.config.action_dim)
     queues: dict[str, deque[int]] = {}
     for i, ep in enumerate(episodes):
@@ -115,9 +117,12 @@ def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndar
         need = [s for s in live if s.t % settings.n_action_steps == 0]
         if need:
             batch = {k: torch.as_tensor(np.stack([s.obs[k] for s in need])) for k in need[0].obs}
-            batch["instruction"] = torch.as_tensor(np.stack([instructions[s.task] for s in need]))
+            batch.update(instruction_entries(instructions, [s.task for s in need]))
+            batch = {k: v.to(device) for k, v in batch.items()}
             noise = torch.stack([torch.randn(chunk_shape, generator=s.noise) for s in need])
-            for s, chunk in zip(need, policy.sample_actions(batch, noise=noise).numpy()):
+            with autocast(device):
+                chunks = policy.sample_actions(batch, noise=noise.to(device))
+            for s, chunk in zip(need, chunks.float().cpu().numpy()):
                 s.plan = chunk
         for s in live:
             result = s.env.step(s.plan[s.t % settings.n_action_steps])
@@ -198,10 +203,10 @@ def _init_worker(suite_name: str, settings: EvalSettings, torch_threads: int) ->
 
 
 def _worker_rollout(config, weights, episodes, instructions, noise_seed):
-    from policies import FlowMatchingPolicy
+    from policies import policy_for_config
 
     if _WORKER.get("config") != config:
-        _WORKER["policy"], _WORKER["config"] = FlowMatchingPolicy(config), config
+        _WORKER["policy"], _WORKER["config"] = policy_for_config(config), config
     policy = _WORKER["policy"]
     policy.load_state_dict(weights)
     return rollout(policy, episodes, instructions, _WORKER["settings"], noise_seed, _WORKER["envs"])
@@ -215,9 +220,11 @@ def heldout_loss(policy, data: TrainingData, seed: int) -> float:
     and stages: a cheap, deterministic retention signal.
     """
     policy.eval()
+    device = next(policy.parameters()).device
     g = torch.Generator().manual_seed(seed)
     noise = torch.randn(data.actions.shape, generator=g)
     time = policy.sample_time(len(data), g)
     batch = data.batch(torch.arange(len(data)))
     batch["noise"], batch["time"] = noise, time
-    return policy(batch).mean().item()
+    with autocast(device):
+        return policy({k: v.to(device) for k, v in batch.items()}).mean().item()
