@@ -18,7 +18,7 @@ from harness.seeding import derive_seed, generator
 from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
 from harness.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
-from policies import make_config
+from policies import get_policy, make_config
 from policies.flow_matching.modeling import ARCHITECTURE_VERSION
 from suites import Suite
 
@@ -60,6 +60,7 @@ def foundation_key(cfg: BenchConfig, suite: Suite, seed: int) -> str:
     policy = {**policy_config(cfg, suite).__dict__}
     if cfg.policy != "mlp":  # mlp's keys predate the registry and stay valid
         policy["name"] = cfg.policy
+        policy["architecture"] = getattr(get_policy(cfg.policy), "ARCHITECTURE_VERSION", 0)
     if cfg.device != "cpu" or cfg.compile:  # GPU numerics differ from the CPU's
         policy["device"] = [str(resolve_device(cfg.device)), cfg.compile]
     return _hash({

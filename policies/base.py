@@ -22,6 +22,9 @@ THE POLICY CONTRACT (what the harness and every method rely on; `docs/adding-a-p
   space at x_t = time * noise + (1 - time) * actions, with the caller's batch["noise"] and
   batch["time"] (what distillation and MAS compare).
 
+- Optionally `ARCHITECTURE_VERSION` (a class attribute, part of the foundation cache key): bump
+  it when the network changes, so cached foundations of the old network are not reused.
+
 Subclassing `FlowMatchingBase` gives all of it from the two network methods.
 """
 

@@ -106,6 +106,7 @@ class PrefixCache:
 @register_policy("pi0")
 class Pi0Policy(FlowMatchingBase):
     Config = Pi0Config
+    ARCHITECTURE_VERSION = 1  # part of the foundation cache key: bump when the network changes
 
     def __init__(self, config: Pi0Config):
         super().__init__(config)
