@@ -130,6 +130,7 @@ def instruction_entries(instructions: dict, tasks: list[str]) -> dict[str, torch
 
 
 def merge_batches(*batches: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """One batch from several (same keys); "index" and "task_index" lose their meaning."""
+    """One batch from several (same keys); "index" and "task_index" lose their meaning. The
+    result lives where the first batch does (a replay buffer may be kept elsewhere)."""
     keys = [k for k in batches[0] if k not in ("index", "task_index")]
-    return {k: torch.cat([b[k] for b in batches]) for k in keys}
+    return {k: torch.cat([b[k].to(batches[0][k].device) for b in batches]) for k in keys}

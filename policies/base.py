@@ -131,10 +131,18 @@ class FlowMatchingBase(nn.Module):
             t = self.sample_time(actions.shape[0], generator)
         return noise, t
 
+    def _on_device(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """`batch` with its tensors on the policy's device (itself when they are there), so a
+        method may hand a GPU policy the CPU samples it keeps."""
+        if batch["state"].device == self.device:
+            return batch
+        return {k: v.to(self.device) if torch.is_tensor(v) else v for k, v in batch.items()}
+
     def forward(
         self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None
     ) -> torch.Tensor:
         """Per-sample flow-matching loss [B]. `batch["noise"]`/`batch["time"]` fix the draws."""
+        batch = self._on_device(batch)
         actions = self.action_norm.normalize(batch["actions"])
         noise, t = self._draws(batch, actions, generator)
         tt = t[:, None, None]
@@ -150,6 +158,7 @@ class FlowMatchingBase(nn.Module):
     def predicted_velocity(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """The velocity [B, H, A] (normalized action space) at the caller's batch["noise"] and
         batch["time"]: what distillation and MAS compare between networks."""
+        batch = self._on_device(batch)
         actions = self.action_norm.normalize(batch["actions"])
         tt = batch["time"][:, None, None]
         x_t = tt * batch["noise"] + (1.0 - tt) * actions
@@ -165,7 +174,8 @@ class FlowMatchingBase(nn.Module):
         """Action chunks [B, H, A] in environment units: Euler from noise (t=1) to data (t=0),
         the observation encoded once for all steps."""
         c = self.config
-        x = noise
+        batch = self._on_device(batch)
+        x = noise if noise is None else noise.to(self.device)
         if x is None:
             shape = (batch["state"].shape[0], c.chunk_size, c.action_dim)
             x = _randn(shape, generator, batch["state"].device)
