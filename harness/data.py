@@ -39,6 +39,7 @@ def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
     texts = [suite.instruction(t) for t in tasks]
     embeddings = embed_instructions(texts, cache / "instructions")
     token_ids = tokenize_instructions(texts, cache / "instructions")
+    token_ids = token_ids[:, :max(1, int((token_ids != 0).sum(1).max()))]  # no all-padding column
     data = BenchmarkData({}, {}, {})
     for task, embedding, tokens in zip(tasks, embeddings, token_ids):
         data.instructions[task] = {"instruction": embedding, "instruction_tokens": tokens}

@@ -79,6 +79,9 @@ class TrainingData:
                     tokens = part.instruction_tokens
                     token_rows.append(None if tokens is None else tokens[i])
         has_tokens = bool(token_rows) and all(r is not None for r in token_rows)
+        if has_tokens:  # padded (id 0) to the longest
+            width = max(len(r) for r in token_rows)
+            token_rows = [torch.nn.functional.pad(r, (0, width - len(r))) for r in token_rows]
         remapped = [torch.tensor([names.index(n) for n in p.task_names])[p.task_index] for p in parts]
         keys = parts[0].obs.keys()
         return TrainingData(

@@ -14,6 +14,8 @@ import pytest
 import torch
 
 from harness.cli import main
+from harness.config import resolve
+from harness.data import prepare_data
 from harness.datasets import TrainingData, chunk_episodes, instruction_entries
 from harness.demos import Episode
 from harness.device import resolve_device
@@ -23,6 +25,7 @@ from methods import TaskContext, get_method, method_names
 from policies import Pi0Config, Pi0Policy, get_policy, make_config, policy_for_config
 from policies.pi0.modeling import block_attention_mask
 from policies.text_encoder import MAX_TOKENS, tokenize_instructions
+from suites import get_suite
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "adding-a-policy.md"
@@ -102,8 +105,7 @@ def test_language_tokens_reach_the_prefix():
     policy, batch = _policy(cameras=()), _batch(cameras=())
     tokens, valid = policy.prefix_tokens(batch)
     n_words = (batch["instruction_tokens"][0] != 0).sum().item()
-    longest = (batch["instruction_tokens"] != 0).sum(1).max().item()
-    assert tokens.shape[1] == longest + 1 and valid[0].sum().item() == n_words + 1
+    assert tokens.shape[1] == MAX_TOKENS + 1 and valid[0].sum().item() == n_words + 1
     noise = torch.randn(4, 4, 3)
     other = dict(batch, instruction_tokens=batch["instruction_tokens"].flip(0))
     assert not torch.allclose(policy.sample_actions(batch, noise=noise),
@@ -117,11 +119,11 @@ def test_token_ids_are_cached_and_travel_with_the_samples(tmp_path):
     assert np.array_equal(tokenize_instructions(["close the window"], tmp_path), ids)
     episode = Episode(np.zeros((3, 2), np.float32), {"state": np.zeros((3, 5), np.float32)}, 0)
     a = chunk_episodes([episode], "a", np.zeros(384, np.float32), 4, ids[0])
-    b = chunk_episodes([episode], "b", np.ones(384, np.float32), 4, ids[0][::-1].copy())
-    both = TrainingData.concat([a, b])
+    b = chunk_episodes([episode], "b", np.ones(384, np.float32), 4, ids[0][:5])
+    both = TrainingData.concat([a, b])  # tables of two widths: padded to the longer
     batch = both.batch(torch.tensor([0, 4]))
     assert torch.equal(batch["instruction_tokens"][0], torch.from_numpy(ids[0]))
-    assert torch.equal(batch["instruction_tokens"][1], torch.from_numpy(ids[0][::-1].copy()))
+    assert batch["instruction_tokens"][1].tolist() == ids[0][:5].tolist() + [0] * (MAX_TOKENS - 5)
     entries = instruction_entries({"a": {"instruction": np.zeros(384), "instruction_tokens": ids[0]}},
                                   ["a", "a"])
     assert entries["instruction_tokens"].shape == (2, MAX_TOKENS)
@@ -161,6 +163,13 @@ def test_the_tiny_pi0_trains_end_to_end(tmp_path):
     assert all(np.isfinite(losses)) and len(losses) == 3
     layers = (tmp_path / "results/mw-quick-tiny/sft/seed0/updates_per_layer.csv").read_text()
     assert "expert_layers.0.qkv.weight" in layers and "language_proj.weight" in layers
+    cfg = resolve(args[1:])  # the cached demos again: their batches carry the token ids
+    data = prepare_data(cfg, get_suite(cfg.suite))
+    task = cfg.stream_tasks[0]
+    ids = tokenize_instructions([get_suite(cfg.suite).instruction(task)])[0]
+    row = data.train[task].batch(torch.tensor([0]))["instruction_tokens"][0].numpy()
+    assert np.array_equal(row, ids[:len(row)]) and (row != 0).sum() == (ids != 0).sum()
+    assert np.array_equal(data.instructions[task]["instruction_tokens"], row)
 
 
 @pytest.mark.parametrize("args, message", [

@@ -147,8 +147,7 @@ class Pi0Policy(FlowMatchingBase):
         if ids is None:  # the pooled sentence as one token
             language = self.language_proj(batch["instruction"])[:, None]
             valid.append(torch.ones(b, 1, dtype=torch.bool, device=state.device))
-        else:  # the batch's padding columns past its longest instruction are dropped
-            ids = ids[:, :max(1, int((ids != 0).sum(1).max()))]
+        else:
             language = self.language_proj(self.token_table[ids])
             valid.append(ids != 0)
         parts.append(language + self.language_position[:language.shape[1]])
