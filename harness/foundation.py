@@ -18,7 +18,7 @@ from harness.seeding import derive_seed, generator
 from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
 from harness.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
-from policies import get_policy, make_config
+from policies import get_policy, make_config, policy_for_config
 from policies.flow_matching.modeling import ARCHITECTURE_VERSION
 from suites import Suite
 
@@ -44,8 +44,6 @@ def policy_config(cfg: BenchConfig, suite: Suite):
 
 def build_policy(cfg: BenchConfig, suite: Suite) -> torch.nn.Module:
     """A fresh policy on `cfg.device`, compiled when `cfg.compile` (its state dict unchanged)."""
-    from policies import policy_for_config
-
     policy = policy_for_config(policy_config(cfg, suite)).to(resolve_device(cfg.device))
     if cfg.compile:
         policy.compile()
@@ -61,8 +59,9 @@ def foundation_key(cfg: BenchConfig, suite: Suite, seed: int) -> str:
     if cfg.policy != "mlp":  # mlp's keys predate the registry and stay valid
         policy["name"] = cfg.policy
         policy["architecture"] = getattr(get_policy(cfg.policy), "ARCHITECTURE_VERSION", 0)
-    if cfg.device != "cpu" or cfg.compile:  # GPU numerics differ from the CPU's
-        policy["device"] = [str(resolve_device(cfg.device)), cfg.compile]
+    device = resolve_device(cfg.device)
+    if device.type != "cpu" or cfg.compile:  # GPU and compiled numerics differ from the CPU's
+        policy["device"] = [device.type, cfg.compile]
     return _hash({
         "version": [FOUNDATION_VERSION, ARCHITECTURE_VERSION], "seed": seed, "policy": policy,
         "demos": [demo_spec(cfg, suite, t, "demo").key() for t in cfg.foundation_tasks],
