@@ -46,8 +46,9 @@ sweep: $(STAMP)
 report: $(STAMP)
 	$(REPORT)
 
+# make bench-train [device=cuda] [compile=true]: the CPU sizes' step phases, or pi0 on a GPU
 bench-train: $(STAMP)
-	$(PY) -m harness.perf train
+	$(PY) -m harness.perf train $(call quote,$(filter device=% compile=%,$(OVERRIDES)))
 
 bench-methods: $(STAMP)
 	$(PY) -m harness.perf methods

@@ -88,6 +88,14 @@ def plan(args: list[str]) -> Plan:
         raise RetainError(f"task {both[0]!r} is both a foundation and a stream task in {cfg.name}")
     if not cfg.stream_tasks or not cfg.foundation_tasks:
         raise RetainError(f"benchmark {cfg.name} needs at least one foundation and one stream task")
+    from harness.device import resolve_device
+    from harness.foundation import policy_config
+
+    resolve_device(cfg.device)
+    try:
+        policy_config(cfg, suite)  # an unknown policy or size fails here, naming the valid ones
+    except ValueError as exc:
+        raise RetainError(str(exc).splitlines()[0]) from None
     if cfg.method == "all":
         names = ["sft"] + [n for n in method_names() if n != "sft"]
     else:

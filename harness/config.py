@@ -40,6 +40,7 @@ class BenchConfig:
     lr: float = 3e-4
     weight_decay: float = 0.0
     grad_clip: float = 1.0
+    policy: str = "mlp"  # a registered policy (mlp, pi0) or module.path:Class / file.py:Class
     policy_size: str = "default"
     chunk_size: int = 4
     n_action_steps: int = 4
@@ -61,6 +62,8 @@ class BenchConfig:
     learning_curve_every: int = 0  # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
     executor: str = "local"  # where a comparison's jobs run: serial, local (processes) or ray
     jobs: int = 0  # jobs at once; 0: as many as the cores allow given each job's workers
+    device: str = "cpu"  # cpu, cuda or auto (CUDA when present); CUDA trains in bf16 autocast
+    compile: bool = False  # torch.compile the policy (worth it on a GPU)
 
     def workers(self) -> int:
         return self.eval_workers if self.eval_workers > 0 else (os.cpu_count() or 1)
@@ -82,7 +85,7 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "heldout_demos_per_task", "eval_episodes", "max_episode_steps", "foundation_steps",
     "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras", "image_size",
     "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress", "torch_threads",
-    "eval_workers", "eval_envs_per_task", "executor", "jobs"})
+    "eval_workers", "eval_envs_per_task", "executor", "jobs", "policy", "device", "compile"})
 
 EXECUTORS = ("serial", "local", "ray")
 

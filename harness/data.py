@@ -1,4 +1,5 @@
-"""Suite -> training data: every task's demos (cached), chunked, with its instruction embedded."""
+"""Suite -> training data: every task's demos (cached), chunked, with its instruction embedded
+(the pooled sentence embedding, and the MiniLM token ids for policies that read tokens)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 from harness.config import BenchConfig
 from harness.datasets import TrainingData, chunk_episodes
 from harness.demos import DemoSpec, Episode, load_or_generate
-from policies.text_encoder import embed_instructions
+from policies.text_encoder import embed_instructions, tokenize_instructions
 from suites import Suite
 
 
@@ -18,7 +19,8 @@ from suites import Suite
 class BenchmarkData:
     train: dict[str, TrainingData]  # task -> training samples
     heldout: dict[str, TrainingData]  # task -> held-out samples (offline retention)
-    instructions: dict[str, np.ndarray]  # task -> [384] embedding
+    # task -> {"instruction": [384] embedding, "instruction_tokens": [L] token ids}
+    instructions: dict[str, dict[str, np.ndarray]]
 
     def foundation(self, tasks: list[str]) -> TrainingData:
         return TrainingData.concat([self.train[t] for t in tasks])
@@ -34,13 +36,16 @@ def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec
 def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
     tasks = cfg.foundation_tasks + cfg.stream_tasks
     cache = Path(cfg.cache_dir)
-    embeddings = embed_instructions([suite.instruction(t) for t in tasks], cache / "instructions")
+    texts = [suite.instruction(t) for t in tasks]
+    embeddings = embed_instructions(texts, cache / "instructions")
+    token_ids = tokenize_instructions(texts, cache / "instructions")
+    token_ids = token_ids[:, :max(1, int((token_ids != 0).sum(1).max()))]  # no all-padding column
     data = BenchmarkData({}, {}, {})
-    for task, embedding in zip(tasks, embeddings):
-        data.instructions[task] = embedding
+    for task, embedding, tokens in zip(tasks, embeddings, token_ids):
+        data.instructions[task] = {"instruction": embedding, "instruction_tokens": tokens}
         for split, target in (("demo", data.train), ("heldout", data.heldout)):
             episodes = load_or_generate(suite, demo_spec(cfg, suite, task, split), cache, cfg.progress)
-            target[task] = chunk_episodes(episodes, task, embedding, cfg.chunk_size)
+            target[task] = chunk_episodes(episodes, task, embedding, cfg.chunk_size, tokens)
     return data
 
 
@@ -55,4 +60,5 @@ def libero_training_data(path: str | Path, chunk_size: int, cache_dir: Path | No
     task = read_libero_file(path)
     episodes = [Episode(e["actions"], e["obs"], seed=-1) for e in task.episodes]
     embedding = embed_instructions([task.instruction], cache_dir)[0]
-    return chunk_episodes(episodes, Path(path).stem, embedding, chunk_size)
+    tokens = tokenize_instructions([task.instruction], cache_dir)[0]
+    return chunk_episodes(episodes, Path(path).stem, embedding, chunk_size, tokens)

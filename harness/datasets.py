@@ -24,6 +24,7 @@ class TrainingData:
     task_index: torch.Tensor  # [N] long
     instruction_table: torch.Tensor  # [T, 384] one row per task
     task_names: list[str]
+    instruction_tokens: torch.Tensor | None = None  # [T, L] MiniLM token ids per task (0 = pad)
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -35,6 +36,8 @@ class TrainingData:
         out["instruction"] = self.instruction_table[self.task_index[idx]]
         out["task_index"] = self.task_index[idx]
         out["index"] = idx
+        if self.instruction_tokens is not None:
+            out["instruction_tokens"] = self.instruction_tokens[out["task_index"]]
         return out
 
     def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -43,7 +46,17 @@ class TrainingData:
     def subset(self, idx: torch.Tensor) -> TrainingData:
         return TrainingData({k: v[idx] for k, v in self.obs.items()}, self.actions[idx],
                             self.action_mask[idx], self.task_index[idx], self.instruction_table,
-                            self.task_names)
+                            self.task_names, self.instruction_tokens)
+
+    def to(self, device: torch.device | str) -> TrainingData:
+        """The same samples with every tensor on `device` (itself when already there)."""
+        if self.actions.device == torch.device(device):
+            return self
+        return TrainingData({k: v.to(device) for k, v in self.obs.items()},
+                            self.actions.to(device), self.action_mask.to(device),
+                            self.task_index.to(device), self.instruction_table.to(device),
+                            self.task_names, None if self.instruction_tokens is None
+                            else self.instruction_tokens.to(device))
 
     def for_task(self, task: str) -> TrainingData:
         return self.subset(torch.nonzero(self.task_index == self.task_names.index(task)).flatten())
@@ -57,11 +70,18 @@ class TrainingData:
         """Join datasets, re-indexing tasks so every task name appears once."""
         names: list[str] = []
         rows: list[torch.Tensor] = []
+        token_rows: list[torch.Tensor | None] = []
         for part in parts:
             for i, name in enumerate(part.task_names):
                 if name not in names:
                     names.append(name)
                     rows.append(part.instruction_table[i])
+                    tokens = part.instruction_tokens
+                    token_rows.append(None if tokens is None else tokens[i])
+        has_tokens = bool(token_rows) and all(r is not None for r in token_rows)
+        if has_tokens:  # padded (id 0) to the longest
+            width = max(len(r) for r in token_rows)
+            token_rows = [torch.nn.functional.pad(r, (0, width - len(r))) for r in token_rows]
         remapped = [torch.tensor([names.index(n) for n in p.task_names])[p.task_index] for p in parts]
         keys = parts[0].obs.keys()
         return TrainingData(
@@ -71,11 +91,13 @@ class TrainingData:
             torch.cat(remapped),
             torch.stack(rows) if rows else parts[0].instruction_table[:0],
             names,
+            torch.stack(token_rows) if has_tokens else None,
         )
 
 
 def chunk_episodes(
-    episodes: list[Episode], task: str, instruction_embedding: np.ndarray, chunk_size: int
+    episodes: list[Episode], task: str, instruction_embedding: np.ndarray, chunk_size: int,
+    instruction_tokens: np.ndarray | None = None,
 ) -> TrainingData:
     obs_parts: dict[str, list[np.ndarray]] = {k: [] for k in episodes[0].obs}
     action_parts, mask_parts = [], []
@@ -95,10 +117,23 @@ def chunk_episodes(
         torch.zeros(n, dtype=torch.long),
         torch.from_numpy(np.asarray(instruction_embedding, np.float32)[None]),
         [task],
+        None if instruction_tokens is None
+        else torch.from_numpy(np.asarray(instruction_tokens, np.int64)[None]),
     )
 
 
+def instruction_entries(instructions: dict, tasks: list[str]) -> dict[str, torch.Tensor]:
+    """The batch entries of the instructions of `tasks` (one per row): a task's value is its
+    pooled embedding [384], or a dict of entries ({"instruction": [384],
+    "instruction_tokens": [L]}) as `harness.data.prepare_data` makes."""
+    values = [instructions[t] for t in tasks]
+    if not isinstance(values[0], dict):
+        return {"instruction": torch.as_tensor(np.stack(values))}
+    return {k: torch.as_tensor(np.stack([v[k] for v in values])) for k in values[0]}
+
+
 def merge_batches(*batches: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """One batch from several (same keys); "index" and "task_index" lose their meaning."""
+    """One batch from several (same keys); "index" and "task_index" lose their meaning. The
+    result lives where the first batch does (a replay buffer may be kept elsewhere)."""
     keys = [k for k in batches[0] if k not in ("index", "task_index")]
-    return {k: torch.cat([b[k] for b in batches]) for k in keys}
+    return {k: torch.cat([b[k].to(batches[0][k].device) for b in batches]) for k in keys}

@@ -31,7 +31,8 @@ from multiprocessing import get_context
 import numpy as np
 import torch
 
-from harness.datasets import TrainingData
+from harness.datasets import TrainingData, instruction_entries
+from harness.device import autocast
 from harness.seeding import generator
 from suites import Observation, StepResult, Suite, episode_seeds, get_suite
 
@@ -164,12 +165,12 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
             break
         need = [s for s in running if s.t % n_steps == 0]
         if need:
-            batch = {k: torch.as_tensor(np.stack([s.obs[k] for s in need])).to(device)
-                     for k in need[0].obs}
-            batch["instruction"] = torch.as_tensor(
-                np.stack([instructions[s.task] for s in need])).to(device)
+            batch = {k: torch.as_tensor(np.stack([s.obs[k] for s in need])) for k in need[0].obs}
+            batch.update(instruction_entries(instructions, [s.task for s in need]))
+            batch = {k: v.to(device) for k, v in batch.items()}
             noise = torch.stack([torch.randn(chunk_shape, generator=s.noise) for s in need])
-            chunks = policy.sample_actions(batch, noise=noise.to(device))
+            with autocast(device):
+                chunks = policy.sample_actions(batch, noise=noise.to(device))
             for s, chunk in zip(need, chunks.float().cpu().numpy()):
                 s.plan = chunk
         results = sims.step([(s.index, s.plan[s.t % n_steps]) for s in running])
@@ -360,10 +361,10 @@ def _init_worker(suite_name: str, settings: EvalSettings, torch_threads: int) ->
 
 
 def _worker_rollout(config, weights, episodes, instructions, noise_seed):
-    from policies import FlowMatchingPolicy
+    from policies import policy_for_config
 
     if _WORKER.get("config") != config:
-        _WORKER["policy"], _WORKER["config"] = FlowMatchingPolicy(config), config
+        _WORKER["policy"], _WORKER["config"] = policy_for_config(config), config
     policy = _WORKER["policy"]
     policy.load_state_dict(weights)
     return rollout(policy, episodes, instructions, _WORKER["settings"], noise_seed, _WORKER["envs"])
@@ -398,9 +399,11 @@ def heldout_loss(policy, data: TrainingData, seed: int) -> float:
     and stages: a cheap, deterministic retention signal.
     """
     policy.eval()
+    device = next(policy.parameters()).device
     g = torch.Generator().manual_seed(seed)
     noise = torch.randn(data.actions.shape, generator=g)
     time = policy.sample_time(len(data), g)
     batch = data.batch(torch.arange(len(data)))
     batch["noise"], batch["time"] = noise, time
-    return policy(batch).mean().item()
+    with autocast(device):
+        return policy({k: v.to(device) for k, v in batch.items()}).mean().item()

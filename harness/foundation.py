@@ -12,12 +12,13 @@ import torch
 
 from harness.config import BenchConfig
 from harness.data import BenchmarkData, demo_spec
+from harness.device import resolve_device
 from harness.evaluation import Evaluator
 from harness.seeding import derive_seed, generator
 from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
 from harness.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
-from policies import FlowMatchingConfig, FlowMatchingPolicy
+from policies import get_policy, make_config, policy_for_config
 from policies.flow_matching.modeling import ARCHITECTURE_VERSION
 from suites import Suite
 from suites.base import CAMERA_KEYS
@@ -33,16 +34,20 @@ class Foundation:
     stage0: StageRecord
 
 
-def policy_config(cfg: BenchConfig, suite: Suite) -> FlowMatchingConfig:
-    image_keys = CAMERA_KEYS if cfg.cameras else ()
-    return FlowMatchingConfig(state_dim=suite.state_dim, action_dim=suite.action_dim,
-                              size=cfg.policy_size, chunk_size=cfg.chunk_size,
-                              n_action_steps=cfg.n_action_steps, image_keys=image_keys,
-                              image_size=cfg.image_size)
+def policy_config(cfg: BenchConfig, suite: Suite):
+    """The `cfg.policy` policy's config for this suite; ValueError on an unknown policy or size."""
+    return make_config(cfg.policy, state_dim=suite.state_dim, action_dim=suite.action_dim,
+                       size=cfg.policy_size, chunk_size=cfg.chunk_size,
+                       n_action_steps=cfg.n_action_steps,
+                       image_keys=CAMERA_KEYS if cfg.cameras else (), image_size=cfg.image_size)
 
 
-def build_policy(cfg: BenchConfig, suite: Suite) -> FlowMatchingPolicy:
-    return FlowMatchingPolicy(policy_config(cfg, suite))
+def build_policy(cfg: BenchConfig, suite: Suite) -> torch.nn.Module:
+    """A fresh policy on `cfg.device`, compiled when `cfg.compile` (its state dict unchanged)."""
+    policy = policy_for_config(policy_config(cfg, suite)).to(resolve_device(cfg.device))
+    if cfg.compile:
+        policy.compile()
+    return policy
 
 
 def _hash(obj) -> str:
@@ -50,8 +55,15 @@ def _hash(obj) -> str:
 
 
 def foundation_key(cfg: BenchConfig, suite: Suite, seed: int) -> str:
+    policy = {**policy_config(cfg, suite).__dict__}
+    if cfg.policy != "mlp":  # mlp's keys predate the registry and stay valid
+        policy["name"] = cfg.policy
+        policy["architecture"] = getattr(get_policy(cfg.policy), "ARCHITECTURE_VERSION", 0)
+    device = resolve_device(cfg.device)
+    if device.type != "cpu" or cfg.compile:  # GPU and compiled numerics differ from the CPU's
+        policy["device"] = [device.type, cfg.compile]
     return _hash({
-        "version": [FOUNDATION_VERSION, ARCHITECTURE_VERSION], "seed": seed, "policy": policy_config(cfg, suite).__dict__,
+        "version": [FOUNDATION_VERSION, ARCHITECTURE_VERSION], "seed": seed, "policy": policy,
         "demos": [demo_spec(cfg, suite, t, "demo").key() for t in cfg.foundation_tasks],
         "train": [cfg.foundation_steps, cfg.batch_size, cfg.foundation_lr, cfg.weight_decay,
                   cfg.grad_clip],

@@ -44,7 +44,8 @@ class FlatAdamW:
     gradient zeroed, without `Optimizer.step`'s per-call bookkeeping (a third of the update on
     the tiny policy) or a separate pass to scale the gradient. `torch._fused_adamw_` is the kernel
     `AdamW(fused=True)` calls; `tests/test_trainer.py` holds this class to `torch.optim.AdamW`, so
-    a torch upgrade that changes the kernel fails there."""
+    a torch upgrade that changes the kernel fails there. The kernel has CPU and CUDA versions;
+    every tensor it gets lives on the parameters' device."""
 
     def __init__(self, flat: torch.nn.Parameter, lr: float, weight_decay: float,
                  grad_clip: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
@@ -52,7 +53,8 @@ class FlatAdamW:
         self.hyper = dict(lr=lr, beta1=betas[0], beta2=betas[1], weight_decay=weight_decay,
                           eps=eps, amsgrad=False, maximize=False)
         self.exp_avg, self.exp_avg_sq = torch.zeros_like(flat), torch.zeros_like(flat)
-        self.step_count = torch.zeros((), dtype=torch.float32)  # the kernel reads it, as in torch
+        # the kernel reads it, as in torch, from the parameters' device (CPU or CUDA)
+        self.step_count = torch.zeros((), dtype=torch.float32, device=flat.device)
 
     def step(self) -> None:
         grad = self.flat.grad

@@ -18,28 +18,42 @@ from multiprocessing import get_context
 
 import torch
 
-from harness.config import load_benchmark
+from harness.config import coerce, load_benchmark, parse_overrides
 from harness.datasets import TrainingData
+from harness.device import autocast, resolve_device
+from harness.errors import RetainError
 from harness.evaluation import EnvCache, EvalSettings, Evaluator, evaluation_episodes
 from harness.trainer import PhaseTimer, TrainSettings, train_stage
 from methods import TaskContext, get_method, method_names
-from policies import FlowMatchingConfig, FlowMatchingPolicy
+from policies import make_config, policy_for_config
+from policies.text_encoder import tokenize_instructions
 from suites.base import run_expert_episode
 
 STATE_DIM, ACTION_DIM = 39, 4  # Meta-World's
+CAMERAS = ("agentview_rgb", "eye_in_hand_rgb")
+# dense bf16 tensor-core peaks, TFLOP/s, by a substring of torch.cuda.get_device_name()
+PEAK_BF16_TFLOPS = {"H100 PCIe": 756.0, "H100": 989.0, "H200": 989.0, "H800": 989.0,
+                    "A100": 312.0, "L40S": 362.0, "L4": 121.0, "A10": 125.0}
 
 
-def synthetic_data(n: int, seed: int, task: str = "task", chunk: int = 4) -> TrainingData:
+def synthetic_data(n: int, seed: int, task: str = "task", chunk: int = 4,
+                   action_dim: int = ACTION_DIM, image_size: int = 0) -> TrainingData:
     g = torch.Generator().manual_seed(seed)
-    return TrainingData({"state": torch.randn(n, STATE_DIM, generator=g)},
-                        torch.randn(n, chunk, ACTION_DIM, generator=g).clamp(-1, 1),
+    obs = {"state": torch.randn(n, STATE_DIM, generator=g)}
+    for key in CAMERAS if image_size else ():
+        obs[key] = torch.randint(0, 256, (n, image_size, image_size, 3), dtype=torch.uint8,
+                                 generator=g)
+    tokens = torch.from_numpy(tokenize_instructions(["pick up the black bowl and place it on "
+                                                     "the plate"]))
+    return TrainingData(obs, torch.randn(n, chunk, action_dim, generator=g).clamp(-1, 1),
                         torch.ones(n, chunk, dtype=torch.bool), torch.zeros(n, dtype=torch.long),
-                        torch.randn(1, 384, generator=g), [task])
+                        torch.randn(1, 384, generator=g), [task], tokens)
 
 
-def _policy(size: str) -> FlowMatchingPolicy:
+def _policy(size: str, policy: str = "mlp", **fields) -> torch.nn.Module:
     torch.manual_seed(0)
-    return FlowMatchingPolicy(FlowMatchingConfig(STATE_DIM, ACTION_DIM, size=size))
+    fields = {"state_dim": STATE_DIM, "action_dim": ACTION_DIM, "size": size, **fields}
+    return policy_for_config(make_config(policy, **fields))
 
 
 def _ready_method(name: str, policy, foundation: TrainingData, task: TrainingData):
@@ -48,28 +62,92 @@ def _ready_method(name: str, policy, foundation: TrainingData, task: TrainingDat
     return method, TaskContext(1, "task", task, policy, 0.05, 0)
 
 
-def bench_train(steps: int = 200, batch_size: int = 256) -> None:
-    print(f"training throughput (batch {batch_size}, {steps} steps, {torch.get_num_threads()} thread)")
+def bench_train(steps: int = 200, batch_size: int = 256, device: str = "cpu",
+                compile: bool = False) -> None:
+    """CPU: the step's phases for the CPU sizes. CUDA: pi0's GPU size, samples/s and MFU."""
+    if resolve_device(device).type == "cuda":
+        bench_train_gpu(resolve_device(device), compile=compile)
+        return
+    print(f"training throughput (batch {batch_size}, {torch.get_num_threads()} thread; "
+          f"{steps} steps for mlp, {steps // 10} for pi0)")
     print("| policy | parameters | samples/s | step ms | outside forward+backward "
           "| of which clip+AdamW | of which data+loop |")
     print("|---|---|---|---|---|---|---|")
-    for size in ("tiny", "default"):
-        policy = _policy(size)
+    for name, size in (("mlp", "tiny"), ("mlp", "default"), ("pi0", "tiny"), ("pi0", "default")):
+        n_steps = steps if name == "mlp" else max(1, steps // 10)
+        policy = _policy(size, name)
         data = synthetic_data(20_000, 0)
-        ctx = TaskContext(1, "task", data, policy, 0.05, steps)
+        ctx = TaskContext(1, "task", data, policy, 0.05, n_steps)
         g = torch.Generator().manual_seed(0)
-        train_stage(ctx, get_method("sft")(), TrainSettings(20, batch_size, 3e-4), g)  # warm-up
+        warm = TrainSettings(max(2, n_steps // 10), batch_size, 3e-4)
+        train_stage(ctx, get_method("sft")(), warm, g)  # warm-up
         timer = PhaseTimer()
         start = time.perf_counter()
-        train_stage(ctx, get_method("sft")(), TrainSettings(steps, batch_size, 3e-4), g, timer=timer)
+        train_stage(ctx, get_method("sft")(), TrainSettings(n_steps, batch_size, 3e-4), g,
+                    timer=timer)
         total = time.perf_counter() - start
         share = {k: v / total for k, v in timer.seconds.items()}
         outside = 1 - share.get("forward", 0) - share.get("backward", 0)
         update = share.get("optimizer", 0)
         n_params = sum(p.numel() for p in policy.parameters())
-        print(f"| {size} | {n_params:,} | {steps * batch_size / total:,.0f} | "
-              f"{1000 * total / steps:.1f} | {100 * outside:.1f}% (target < 10%) | "
+        print(f"| {name} {size} | {n_params:,} | {n_steps * batch_size / total:,.0f} | "
+              f"{1000 * total / n_steps:.1f} | {100 * outside:.1f}% (target < 10%) | "
               f"{100 * update:.1f}% | {100 * (outside - update):.1f}% |")
+
+
+def _peak_tflops(device: torch.device) -> float | None:
+    if os.environ.get("RETAIN_PEAK_TFLOPS"):
+        return float(os.environ["RETAIN_PEAK_TFLOPS"])
+    name = torch.cuda.get_device_name(device)
+    return next((v for k, v in PEAK_BF16_TFLOPS.items() if k in name), None)
+
+
+def step_flops(policy, batch: dict, device: torch.device) -> int:
+    """FLOPs of one training step's forward and backward (matmuls, convolutions, attention),
+    counted by torch.utils.flop_counter on the real batch."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as counter, autocast(device):
+        policy(batch).mean().backward()
+    policy.zero_grad(set_to_none=True)
+    return counter.get_total_flops()
+
+
+def bench_train_gpu(device: torch.device, batch_size: int = 64, steps: int = 50,
+                    compile: bool = False) -> None:
+    """pi0's GPU size (ViT-B on two 224x224 cameras, 50-action chunks) in bf16 autocast."""
+    fields = dict(action_dim=7, chunk_size=50, n_action_steps=50, image_keys=CAMERAS,
+                  image_size=224)
+    data = synthetic_data(1024, 0, chunk=50, action_dim=7, image_size=224).to(device)
+    peak = _peak_tflops(device)
+    print(f"pi0 large training on {torch.cuda.get_device_name(device)} (batch {batch_size}, "
+          f"{steps} steps after a warm-up, bf16 autocast, fused AdamW; MFU against "
+          f"{peak or '?'} TFLOP/s dense bf16)")
+    print("| policy | mode | parameters | samples/s | step ms | TFLOP/step | MFU | peak GiB |")
+    print("|---|---|---|---|---|---|---|---|")
+    for compiled in (False, True) if compile else (False,):
+        policy = _policy("large", "pi0", **fields).to(device)
+        policy.state_norm.fit(data.obs["state"])
+        policy.action_norm.fit(data.actions.flatten(0, 1))
+        flops = step_flops(policy, data.batch(torch.arange(batch_size, device=device)), device)
+        if compiled:
+            policy.compile()
+        ctx = TaskContext(1, "task", data, policy, 0.05, steps)
+        g = torch.Generator().manual_seed(0)
+        train_stage(ctx, get_method("sft")(), TrainSettings(10, batch_size, 1e-4), g)  # warm-up
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        start = time.perf_counter()
+        train_stage(ctx, get_method("sft")(), TrainSettings(steps, batch_size, 1e-4), g)
+        torch.cuda.synchronize(device)
+        total = time.perf_counter() - start
+        n_params = sum(p.numel() for p in policy.parameters())
+        achieved = flops * steps / total / 1e12
+        mfu = f"{100 * achieved / peak:.1f}% (target >= 40%)" if peak else "n/a"
+        print(f"| pi0 large | {'compiled' if compiled else 'eager'} | {n_params:,} | "
+              f"{steps * batch_size / total:,.0f} | {1000 * total / steps:.1f} | "
+              f"{flops / 1e12:.2f} | {mfu} | "
+              f"{torch.cuda.max_memory_allocated(device) / 2**30:.1f} |")
 
 
 def _rss_mb() -> float:
@@ -213,7 +291,18 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(1)
     what = argv[0] if argv else ""
     if what == "train":
-        bench_train()
+        settings = parse_overrides(argv[1:])  # make bench-train device=cuda compile=true
+        bad = sorted(set(settings) - {"device", "compile"})
+        if bad:
+            print(f"unknown setting {bad[0]!r} for bench-train; valid: device, compile",
+                  file=sys.stderr)
+            return 2
+        try:
+            bench_train(device=settings.get("device", "cpu"),
+                        compile=coerce("compile", settings.get("compile", "false"), bool))
+        except RetainError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     elif what == "methods":
         bench_methods()
     elif what == "eval":
@@ -221,7 +310,8 @@ def main(argv: list[str]) -> int:
     elif what == "_memory":
         print(json.dumps(_method_memory(argv[1], steps=30)))
     else:
-        print("usage: python -m harness.perf {train,methods,eval [workers]}", file=sys.stderr)
+        print("usage: python -m harness.perf {train [device=cuda compile=true],methods,"
+              "eval [workers]}", file=sys.stderr)
         return 2
     return 0
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -11,6 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
+from harness.device import autocast
 from harness.errors import NonFiniteLoss
 from harness.optim import FlatAdamW, contiguous_parameters
 from methods import Method, TaskContext
@@ -64,8 +66,15 @@ def train_stage(
     thread while this step's backward and optimizer step run; `generator` is drawn from in the
     same order as without it (the batch, then the forward's noise and times), so results do not
     depend on the overlap.
+
+    The stage trains where the policy's parameters are: off the CPU, the stage's data moves
+    there once, batches that a method draws elsewhere (a CPU buffer) follow, and the forward
+    and the method's loss run under bf16 autocast. `generator` stays a CPU generator.
     """
     policy = ctx.policy
+    device = next(policy.parameters()).device
+    if device.type != "cpu":
+        ctx = dataclasses.replace(ctx, data=ctx.data.to(device))
     policy.train()
     method.before_task(ctx)  # first: a method may freeze parameters here
     params = [p for p in policy.parameters() if p.requires_grad]
@@ -84,9 +93,13 @@ def train_stage(
                 batch = method.sample_batch(ctx, settings.batch_size, generator)
             else:
                 batch = next_batch.result()
+            if device.type != "cpu":
+                batch = {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v
+                         for k, v in batch.items()}
             timer.mark("data")
-            per_sample = policy(batch, generator=generator)
-            loss, stats = method.loss(per_sample, batch, policy)
+            with autocast(device):
+                per_sample = policy(batch, generator=generator)
+                loss, stats = method.loss(per_sample, batch, policy)
             timer.mark("forward")
             if prefetch and step + 1 < settings.steps:
                 next_batch = data_thread.submit(method.sample_batch, ctx, settings.batch_size,

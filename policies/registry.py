@@ -1,0 +1,94 @@
+"""Policies by name, as methods are: `policy=mlp`, `policy=pi0`, or a user's own class as
+`policy=my_module:MyPolicy` or `policy=path/to/file.py:MyPolicy` (no change to this repository).
+The contract a policy class meets is in `policies/base.py`."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from pathlib import Path
+
+from torch import nn
+
+_REGISTRY: dict[str, type[nn.Module]] = {}
+
+
+def register_policy(name: str):
+    """Class decorator: make a policy available as `policy=<name>`."""
+
+    def register(cls: type[nn.Module]) -> type[nn.Module]:
+        _REGISTRY[name] = cls
+        return cls
+
+    return register
+
+
+def _load_builtins() -> None:
+    import policies.flow_matching.modeling  # noqa: F401
+    import policies.pi0.modeling  # noqa: F401
+
+
+def policy_names() -> list[str]:
+    _load_builtins()
+    return sorted(_REGISTRY)
+
+
+def _import(module_name: str):
+    """A module by dotted name, or by path when it ends in .py. A file's folder joins sys.path,
+    so evaluation workers (spawned with the parent's sys.path) import it by the same name."""
+    if not module_name.endswith(".py"):
+        return importlib.import_module(module_name)
+    path = Path(module_name).expanduser().resolve()
+    if not path.exists():
+        raise ImportError(f"no such file {path}")
+    if str(path.parent) not in sys.path:
+        sys.path.insert(0, str(path.parent))
+    if path.stem in sys.modules and getattr(sys.modules[path.stem], "__file__", None) == str(path):
+        return sys.modules[path.stem]
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[path.stem] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def get_policy(spec: str) -> type[nn.Module]:
+    """A policy class from a registered name or `module.path:ClassName` / `file.py:ClassName`;
+    a ValueError naming the valid ones otherwise."""
+    _load_builtins()
+    if ":" not in spec:
+        if spec not in _REGISTRY:
+            raise ValueError(f"unknown policy {spec!r}; valid: {', '.join(sorted(_REGISTRY))}, "
+                             f"module.path:ClassName or file.py:ClassName")
+        return _REGISTRY[spec]
+    module_name, _, class_name = spec.rpartition(":")
+    try:
+        module = _import(module_name)
+    except (ImportError, OSError) as exc:
+        raise ValueError(f"cannot import policy module {module_name!r} ({exc})") from None
+    cls = getattr(module, class_name, None)
+    if cls is None:
+        raise ValueError(f"module {module_name!r} has no class {class_name!r}")
+    if not (isinstance(cls, type) and issubclass(cls, nn.Module) and hasattr(cls, "Config")):
+        raise ValueError(f"{spec!r} is not a policy: it must be a torch.nn.Module with a Config "
+                         f"dataclass (see docs/adding-a-policy.md)")
+    return cls
+
+
+def make_config(spec: str, **fields):
+    """The policy's config from the harness's fields; ValueError on a bad size or value."""
+    return get_policy(spec).Config(**fields)
+
+
+def policy_for_config(config) -> nn.Module:
+    """A fresh policy for `config`: the class whose Config is the config's class, among the
+    registered ones and the classes of the module that defines the config (a user's policy)."""
+    _load_builtins()
+    candidates = list(_REGISTRY.values())
+    module = sys.modules.get(type(config).__module__)
+    candidates += [v for v in vars(module).values() if isinstance(v, type)] if module else []
+    for cls in candidates:
+        if getattr(cls, "Config", None) is type(config) and issubclass(cls, nn.Module):
+            return cls(config)
+    raise ValueError(f"no policy class has {type(config).__name__} as its Config")
