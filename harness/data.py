@@ -10,6 +10,7 @@ import numpy as np
 from harness.config import BenchConfig
 from harness.datasets import TrainingData, chunk_episodes
 from harness.demos import DemoSpec, Episode, load_or_generate
+from harness.errors import RetainError
 from policies.text_encoder import embed_instructions
 from suites import Suite
 
@@ -27,8 +28,9 @@ class BenchmarkData:
 def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec:
     n = cfg.demos_per_task if split == "demo" else cfg.heldout_demos_per_task
     return DemoSpec(suite=suite.name, suite_version=suite.version(), task=task, split=split,
-                    num_demos=n, max_episode_steps=cfg.max_episode_steps, cameras=cfg.cameras,
-                    image_size=cfg.image_size)
+                    num_demos=n, max_episode_steps=suite.step_limit(task, cfg.max_episode_steps),
+                    cameras=cfg.cameras, image_size=cfg.image_size,
+                    source=str(Path(cfg.demos_dir).resolve()) if cfg.demos_dir else "")
 
 
 def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
@@ -38,21 +40,36 @@ def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
     data = BenchmarkData({}, {}, {})
     for task, embedding in zip(tasks, embeddings):
         data.instructions[task] = embedding
-        for split, target in (("demo", data.train), ("heldout", data.heldout)):
-            episodes = load_or_generate(suite, demo_spec(cfg, suite, task, split), cache, cfg.progress)
-            target[task] = chunk_episodes(episodes, task, embedding, cfg.chunk_size)
+        if cfg.demos_dir:
+            splits = user_demos(cfg, suite, task)
+        else:
+            splits = {split: load_or_generate(suite, demo_spec(cfg, suite, task, split), cache,
+                                              cfg.progress) for split in ("demo", "heldout")}
+        data.train[task] = chunk_episodes(splits["demo"], task, embedding, cfg.chunk_size)
+        data.heldout[task] = chunk_episodes(splits["heldout"], task, embedding, cfg.chunk_size)
     return data
 
 
-def libero_training_data(path: str | Path, chunk_size: int, cache_dir: Path | None = None) -> TrainingData:
-    """One task's training samples from a real LIBERO HDF5 file.
+def user_demos(cfg: BenchConfig, suite: Suite, task: str) -> dict[str, list[Episode]]:
+    """A task's demos from the user's LIBERO dataset files (`demos_dir`, matched by task name):
+    the last `heldout_demos_per_task` are held out, the first `demos_per_task` of the rest train."""
+    if suite.name != "libero":
+        raise RetainError(f"demos_dir reads LIBERO dataset files; suite {suite.name!r} makes its own")
+    from suites.libero.files import read_libero_file, task_file
 
-    The state is LIBERO's own proprioception (ee_states + gripper_states), so these samples train
-    policies meant for real LIBERO; evaluating them there needs the optional `libero` extra.
-    """
-    from suites.robosuite_libero.libero_files import read_libero_file
-
-    task = read_libero_file(path)
-    episodes = [Episode(e["actions"], e["obs"], seed=-1) for e in task.episodes]
-    embedding = embed_instructions([task.instruction], cache_dir)[0]
-    return chunk_episodes(episodes, Path(path).stem, embedding, chunk_size)
+    try:
+        path = task_file(cfg.demos_dir, task)
+        env = suite.make_env(task)
+        try:
+            episodes = read_libero_file(path, env, cameras=cfg.cameras).episodes
+        finally:
+            env.close()
+    except ValueError as err:
+        raise RetainError(str(err)) from None
+    held = cfg.heldout_demos_per_task
+    if len(episodes) <= held:
+        raise RetainError(f"{path} holds {len(episodes)} demos; task {task!r} needs more than "
+                          f"heldout_demos_per_task={held}")
+    as_episodes = [Episode(e["actions"], e["obs"], seed=-1) for e in episodes]
+    return {"demo": as_episodes[:len(as_episodes) - held][:cfg.demos_per_task],
+            "heldout": as_episodes[len(as_episodes) - held:]}
