@@ -92,13 +92,14 @@ class Suite(ABC):
         return episode_seeds(self.name, task, split, n)
 
     def max_steps(self, task: str) -> int | None:
-        """The task's own episode step limit (LIBERO's per-suite limits), or None: the
-        benchmark's max_episode_steps. Where both are set, the smaller one counts."""
+        """The task's own episode step limit, part of the suite's protocol (LIBERO's per-suite
+        limits), or None: the benchmark's max_episode_steps applies."""
         return None
 
     def step_limit(self, task: str, max_episode_steps: int) -> int:
+        """The limit demos and evaluation use: the task's own where it has one."""
         own = self.max_steps(task)
-        return max_episode_steps if own is None else min(own, max_episode_steps)
+        return max_episode_steps if own is None else own
 
     def demo_file_attrs(self, task: str) -> dict[str, str]:
         """Extra attributes of a demo file's `data` group (LIBERO's problem_info, ...)."""

@@ -53,11 +53,12 @@ class LiberoSuite(Suite):
 
     def demo_file_attrs(self, task: str) -> dict[str, str]:
         """What LIBERO's create_dataset.py puts on `data`, so our files read like LIBERO's."""
+        from libero.libero.envs.bddl_utils import get_problem_info
+
         t = self.task(task)
         with open(t.bddl_file) as f:
             bddl = f.read()
-        problem_info = {"problem_name": t.name, "language_instruction": t.instruction,
-                        "suite": t.suite}
+        problem_info = get_problem_info(t.bddl_file)  # as LIBERO writes it (BDDL's wording)
         env_args = {"type": 1, "env_name": "ControlEnv",
                     "env_kwargs": {"bddl_file_name": t.bddl_file, "controller": "OSC_POSE",
                                    "control_freq": 20}}

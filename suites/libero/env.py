@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
+from harness.errors import RetainError
 from suites.base import Observation, StepResult, TaskEnv
 from suites.libero.install import ensure_installed
 from suites.libero.tasks import (
@@ -71,8 +72,8 @@ def _quat2axisangle(quat: np.ndarray) -> np.ndarray:
     return quat2axisangle(np.asarray(quat, dtype=np.float64))
 
 
-class NoExpert(RuntimeError):
-    """The task has no scripted expert (yet)."""
+class NoExpert(RetainError):
+    """The task has no scripted expert (yet): demos for it need demos_dir."""
 
 
 class LiberoTaskEnv(TaskEnv):
@@ -127,7 +128,7 @@ class LiberoTaskEnv(TaskEnv):
     def expert_action(self) -> np.ndarray:
         if self.expert is None:
             raise NoExpert(f"no scripted expert for LIBERO task {self.task.name!r} "
-                           f"({self.expert_error})")
+                           f"({self.expert_error}); train it on LIBERO's files with demos_dir=")
         return np.asarray(self.expert.act(self.raw_obs), dtype=np.float32)
 
     def demo_extras(self) -> dict[str, np.ndarray]:
