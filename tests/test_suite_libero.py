@@ -154,11 +154,16 @@ def test_expert_gets_the_raw_env_after_the_settle_and_the_latest_raw_obs(object_
     monkeypatch.setitem(sys.modules, "suites.libero.experts",
                         types.SimpleNamespace(make_expert=make_expert))
     object_env.reset(5)
+    assert object_env.expert_action().tolist() == [1.0] * 7
     task, raw_env, state = seen[0]
     assert task == OBJECT_TASK and raw_env is object_env.env
     assert not np.array_equal(state, init_states(OBJECT_TASK)[5])  # settled first
     object_env.step(np.zeros(7))
-    assert object_env.expert_action().tolist() == [1.0] * 7 and seen[-1] is object_env.raw_obs
+    object_env.expert_action()
+    assert len(seen) == 3 and seen[-1] is object_env.raw_obs  # one expert per episode, latest obs
+    object_env.reset(6)
+    object_env.expert_action()
+    assert len(seen) == 5  # a new one after a reset
 
 
 # --- assets ---------------------------------------------------------------------------------------

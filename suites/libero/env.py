@@ -86,14 +86,14 @@ class LiberoTaskEnv(TaskEnv):
                              f"state holds {MAX_OBJECTS}")
         self.raw_obs: dict | None = None
         self.expert = None
-        self.expert_error = ""
+        self.expert_error = ""  # why the task has no expert, once asked
 
     # --- TaskEnv -------------------------------------------------------------------------------
     def reset(self, key: int) -> Observation:
         self.start(int(key))
         for _ in range(SETTLE_STEPS):
             self.raw_obs, *_ = self.env.step(NOOP)
-        self._make_expert()
+        self.expert, self.expert_error = None, ""  # made at the episode's first expert_action
         return self._observation(self.raw_obs)
 
     def start(self, key: int) -> None:
@@ -126,6 +126,8 @@ class LiberoTaskEnv(TaskEnv):
         return bool(self.env.check_success())
 
     def expert_action(self) -> np.ndarray:
+        if self.expert is None and not self.expert_error:
+            self._make_expert()
         if self.expert is None:
             raise NoExpert(f"no scripted expert for LIBERO task {self.task.name!r} "
                            f"({self.expert_error}); train it on LIBERO's files with demos_dir=")
@@ -160,8 +162,8 @@ class LiberoTaskEnv(TaskEnv):
         return self._observation(self.raw_obs)
 
     def _make_expert(self) -> None:
-        """The task's expert, built after every reset from the settled scene (suites.libero.experts)."""
-        self.expert, self.expert_error = None, ""
+        """The task's expert (suites.libero.experts), built once per episode from the settled
+        scene: lazily, so evaluating a policy never depends on an expert."""
         try:
             from suites.libero.experts import make_expert
         except ModuleNotFoundError as err:
