@@ -61,7 +61,7 @@ def user_demos(cfg: BenchConfig, suite: Suite, task: str) -> dict[str, list[Epis
         path = task_file(cfg.demos_dir, task)
         env = suite.make_env(task)
         try:
-            episodes = read_libero_file(path, env, cameras=cfg.cameras).episodes
+            episodes = read_libero_file(path, env, cfg.cameras, cfg.image_size).episodes
         finally:
             env.close()
     except ValueError as err:

@@ -243,6 +243,8 @@ def test_libero_layout_file_loads_with_state_rebuilt_from_sim_states(object_env,
     with h5py.File(path) as f:
         assert np.array_equal(task.episodes[0]["obs"]["agentview_rgb"], f["data/demo_0/obs/agentview_rgb"][()])
     assert set(read_libero_file(path, object_env).episodes[0]["obs"]) == {"state"}
+    with pytest.raises(ValueError, match="images of 8x8, not image_size=128, in 'data/demo_0/obs/agentview_rgb'"):
+        read_libero_file(path, object_env, cameras=True, image_size=128)
 
 
 @pytest.mark.parametrize("drop", ["obs/gripper_states", "states", "actions"])

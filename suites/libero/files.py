@@ -89,8 +89,10 @@ def task_file(demos_dir: str | Path, task: str) -> Path:
                      f"(expected {task}_demo.hdf5)")
 
 
-def read_libero_file(path: str | Path, env, cameras: bool = False) -> LiberoTaskData:
-    """The file's demos with the state rebuilt in `env` (a LiberoTaskEnv of the file's task)."""
+def read_libero_file(path: str | Path, env, cameras: bool = False,
+                     image_size: int | None = None) -> LiberoTaskData:
+    """The file's demos with the state rebuilt in `env` (a LiberoTaskEnv of the file's task);
+    with `cameras`, its images too, which must be `image_size` square (LIBERO's are 128)."""
     import h5py
 
     path = Path(path)
@@ -106,10 +108,11 @@ def read_libero_file(path: str | Path, env, cameras: bool = False) -> LiberoTask
         if not demos:
             raise _bad(path, "data/demo_<i>", "missing key")
         instruction = _instruction(path, data)
-        return LiberoTaskData(instruction, [_episode(path, data[k], env, cameras) for _, k in demos])
+        return LiberoTaskData(instruction, [_episode(path, data[k], env, cameras, image_size)
+                                            for _, k in demos])
 
 
-def _episode(path, demo, env, cameras: bool) -> dict:
+def _episode(path, demo, env, cameras: bool, image_size: int | None) -> dict:
     actions = _array(path, demo, "actions", 2, ACTION_DIM).astype(np.float32)
     steps = len(actions)
     states = _array(path, demo, "states", 2, length=steps)
@@ -125,4 +128,8 @@ def _episode(path, demo, env, cameras: bool) -> dict:
     if cameras:
         for key in IMAGE_KEYS:
             obs[key] = _array(path, demo["obs"], key, 4, 3, steps).astype(np.uint8)
+            if image_size is not None and obs[key].shape[1:3] != (image_size, image_size):
+                raise _bad(path, f"{demo.name.lstrip('/')}/obs/{key}",
+                           f"images of {obs[key].shape[1]}x{obs[key].shape[2]}, not image_size="
+                           f"{image_size}, in")
     return {"actions": actions, "obs": obs}
