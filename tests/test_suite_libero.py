@@ -1,6 +1,7 @@
 """Real LIBERO (suite "libero"): its 130 tasks, LIBERO's init-state evaluation protocol, the
 fixed state layout, the asset check, and demo files in LIBERO's layout both ways.
-Building a LIBERO env takes seconds: this file builds three."""
+Building a LIBERO env takes seconds: this file builds six (one per suite, one with cameras, one
+for demos_dir)."""
 
 from __future__ import annotations
 
@@ -125,6 +126,14 @@ def test_spatial_task_with_cameras_steps_and_renders():
         assert result.success is False and result.obs["agentview_rgb"].shape == (32, 32, 3)
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("suite_name, index", [("libero_goal", 0), ("libero_10", 9), ("libero_90", 0)])
+def test_a_task_of_every_other_suite_builds_steps_and_reports_success(suite_name, index):
+    from suites.libero.build_all import check_task
+
+    _built, objects = check_task(SUITE, suite_tasks(suite_name)[index], steps=3)
+    assert 1 <= objects <= MAX_OBJECTS
 
 
 def test_task_without_expert_is_a_one_line_error_naming_it(object_env, monkeypatch):
