@@ -265,7 +265,7 @@ def test_libero_file_missing_a_key_is_one_line_naming_it(object_env, tmp_path, d
     assert "\n" not in str(err.value) and str(path) in str(err.value)
 
 
-def test_demos_dir_matches_tasks_by_name_and_names_a_missing_one(tmp_path):
+def test_demos_dir_matches_tasks_by_name_and_names_a_missing_one(tmp_path, monkeypatch):
     from harness.data import user_demos
 
     states = init_states(OBJECT_TASK)
@@ -275,10 +275,13 @@ def test_demos_dir_matches_tasks_by_name_and_names_a_missing_one(tmp_path):
                       bddl_file=all_tasks()[OBJECT_TASK].bddl_file)
     assert task_file(folder, OBJECT_TASK) == folder / "renamed.hdf5"  # by its BDDL file name
     cfg = BenchConfig("t", "libero", [OBJECT_TASK], [SPATIAL_TASK], demos_per_task=2,
-                      heldout_demos_per_task=1, demos_dir=str(folder))
+                      heldout_demos_per_task=1, demos_dir=str(folder), cache_dir=str(tmp_path / "c"))
     splits = user_demos(cfg, SUITE, OBJECT_TASK)
     assert [len(e) for e in splits["demo"]] == [3, 4] and [len(e) for e in splits["heldout"]] == [6]
     assert splits["demo"][0].obs["state"].shape == (3, STATE_DIM)
+    monkeypatch.setattr(SUITE, "make_env", lambda *a, **k: pytest.fail("built an env"))
+    cached = user_demos(cfg, SUITE, OBJECT_TASK)  # from the cache: no env is built
+    np.testing.assert_array_equal(cached["heldout"][0].obs["state"], splits["heldout"][0].obs["state"])
     with pytest.raises(RetainError, match=f"no LIBERO demo file for task '{SPATIAL_TASK}'") as err:
         user_demos(cfg, SUITE, SPATIAL_TASK)
     assert "\n" not in str(err.value)
