@@ -36,6 +36,9 @@ def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec
 def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
     tasks = cfg.foundation_tasks + cfg.stream_tasks
     cache = Path(cfg.cache_dir)
+    if cfg.demos_dir:  # every task's file found before any long work
+        for task in tasks:
+            user_file(cfg, suite, task)
     embeddings = embed_instructions([suite.instruction(t) for t in tasks], cache / "instructions")
     data = BenchmarkData({}, {}, {})
     for task, embedding in zip(tasks, embeddings):
