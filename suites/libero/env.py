@@ -53,8 +53,8 @@ def patch_floor_mount() -> None:
 
 
 def make_raw_env(task: LiberoTask, cameras: bool, image_size: int):
-    """LIBERO's own env class (`ControlEnv`, which `OffScreenRenderEnv` wraps with rendering
-    forced on): OSC_POSE at 20 Hz as LIBERO sets it, rendering only when cameras are asked for."""
+    """LIBERO's own env class (`ControlEnv`, the base of `OffScreenRenderEnv`, which only forces
+    rendering on): OSC_POSE at 20 Hz as LIBERO sets it, rendering only when cameras are on."""
     ensure_installed()
     patch_floor_mount()
     from libero.libero.envs.env_wrapper import ControlEnv
