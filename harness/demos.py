@@ -103,7 +103,10 @@ def generate_demos(suite: Suite, spec: DemoSpec, progress: bool = True) -> list[
         env.close()
     raise DemoFileError(
         f"expert for task {spec.task!r} succeeded on only {len(episodes)} of {len(seeds)} "
-        f"episodes within {spec.max_episode_steps} steps; raise max_episode_steps"
+        f"episodes within {spec.max_episode_steps} steps; "
+        + ("raise max_episode_steps" if suite.max_steps(spec.task) is None
+           else "that is the task's own step limit: the expert needs mending (on LIBERO, "
+                "demos_dir= trains on LIBERO's dataset files instead)")
     )
 
 
