@@ -55,6 +55,7 @@ class BenchConfig:
     foundation_lr: float = 3e-4  # kept apart from lr, so a sweep of lr shares one foundation
     results_dir: str = "results"
     cache_dir: str = "cache"
+    demos_dir: str = ""  # real LIBERO dataset files (<task>_demo.hdf5) to train on instead of experts
     progress: bool = True
     torch_threads: int = 1  # intra-op threads per process; small CPU batches are slower with more
     eval_workers: int = 0  # evaluation processes; 0 means one per core

@@ -10,7 +10,8 @@ import numpy as np
 
 from harness.config import BenchConfig
 from harness.datasets import TrainingData, chunk_episodes
-from harness.demos import DemoSpec, Episode, load_or_generate
+from harness.demos import DemoSpec, Episode, load_or_generate, read_demo_file, write_demo_file
+from harness.errors import RetainError
 from policies.text_encoder import embed_instructions, tokenize_instructions
 from suites import Suite
 
@@ -29,13 +30,17 @@ class BenchmarkData:
 def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec:
     n = cfg.demos_per_task if split == "demo" else cfg.heldout_demos_per_task
     return DemoSpec(suite=suite.name, suite_version=suite.version(), task=task, split=split,
-                    num_demos=n, max_episode_steps=cfg.max_episode_steps, cameras=cfg.cameras,
-                    image_size=cfg.image_size)
+                    num_demos=n, max_episode_steps=suite.step_limit(task, cfg.max_episode_steps),
+                    cameras=cfg.cameras, image_size=cfg.image_size,
+                    source=user_file(cfg, suite, task) if cfg.demos_dir else "")
 
 
 def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
     tasks = cfg.foundation_tasks + cfg.stream_tasks
     cache = Path(cfg.cache_dir)
+    if cfg.demos_dir:  # every task's file found before any long work
+        for task in tasks:
+            user_file(cfg, suite, task)
     texts = [suite.instruction(t) for t in tasks]
     embeddings = embed_instructions(texts, cache / "instructions")
     token_ids = tokenize_instructions(texts, cache / "instructions")
@@ -43,22 +48,59 @@ def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
     data = BenchmarkData({}, {}, {})
     for task, embedding, tokens in zip(tasks, embeddings, token_ids):
         data.instructions[task] = {"instruction": embedding, "instruction_tokens": tokens}
-        for split, target in (("demo", data.train), ("heldout", data.heldout)):
-            episodes = load_or_generate(suite, demo_spec(cfg, suite, task, split), cache, cfg.progress)
-            target[task] = chunk_episodes(episodes, task, embedding, cfg.chunk_size, tokens)
+        if cfg.demos_dir:
+            splits = user_demos(cfg, suite, task)
+        else:
+            splits = {split: load_or_generate(suite, demo_spec(cfg, suite, task, split), cache,
+                                              cfg.progress) for split in ("demo", "heldout")}
+        data.train[task] = chunk_episodes(splits["demo"], task, embedding, cfg.chunk_size, tokens)
+        data.heldout[task] = chunk_episodes(splits["heldout"], task, embedding, cfg.chunk_size,
+                                            tokens)
     return data
 
 
-def libero_training_data(path: str | Path, chunk_size: int, cache_dir: Path | None = None) -> TrainingData:
-    """One task's training samples from a real LIBERO HDF5 file.
+def user_file(cfg: BenchConfig, suite: Suite, task: str) -> str:
+    """The user's LIBERO file for `task` in `demos_dir`, with its size and modification time:
+    part of the demo-cache key, so a replaced file is read again."""
+    if suite.name != "libero":
+        raise RetainError(f"demos_dir reads LIBERO dataset files; suite {suite.name!r} makes its own")
+    from suites.libero.files import task_file
 
-    The state is LIBERO's own proprioception (ee_states + gripper_states), so these samples train
-    policies meant for real LIBERO; evaluating them there needs the optional `libero` extra.
-    """
-    from suites.robosuite_libero.libero_files import read_libero_file
+    try:
+        path = task_file(cfg.demos_dir, task).resolve()
+    except ValueError as err:
+        raise RetainError(str(err)) from None
+    stat = path.stat()
+    return f"{path}:{stat.st_size}:{stat.st_mtime_ns}"
 
-    task = read_libero_file(path)
-    episodes = [Episode(e["actions"], e["obs"], seed=-1) for e in task.episodes]
-    embedding = embed_instructions([task.instruction], cache_dir)[0]
-    tokens = tokenize_instructions([task.instruction], cache_dir)[0]
-    return chunk_episodes(episodes, Path(path).stem, embedding, chunk_size, tokens)
+
+def user_demos(cfg: BenchConfig, suite: Suite, task: str) -> dict[str, list[Episode]]:
+    """A task's demos from the user's LIBERO dataset files (`demos_dir`, matched by task name):
+    the last `heldout_demos_per_task` are held out, the first `demos_per_task` of the rest train.
+    Rebuilding the state from a file's sim states takes seconds, so the result is cached like
+    generated demos (keyed by the file's path, size and time)."""
+    from suites.libero.files import read_libero_file
+
+    specs = {split: demo_spec(cfg, suite, task, split) for split in ("demo", "heldout")}
+    paths = {split: Path(cfg.cache_dir) / "demos" / suite.name / spec.filename()
+             for split, spec in specs.items()}
+    if all(p.exists() for p in paths.values()):
+        return {split: read_demo_file(paths[split], spec)[1] for split, spec in specs.items()}
+    path = Path(specs["demo"].source.rsplit(":", 2)[0])
+    env = suite.make_env(task)
+    try:
+        episodes = read_libero_file(path, env, cfg.cameras, cfg.image_size).episodes
+    except ValueError as err:
+        raise RetainError(str(err)) from None
+    finally:
+        env.close()
+    held = cfg.heldout_demos_per_task
+    if len(episodes) <= held:
+        raise RetainError(f"{path} holds {len(episodes)} demos; task {task!r} needs more than "
+                          f"heldout_demos_per_task={held}")
+    as_episodes = [Episode(e["actions"], e["obs"], seed=-1) for e in episodes]
+    splits = {"demo": as_episodes[:len(as_episodes) - held][:cfg.demos_per_task],
+              "heldout": as_episodes[len(as_episodes) - held:]}
+    for split, spec in specs.items():
+        write_demo_file(paths[split], splits[split], spec, suite.instruction(task))
+    return splits

@@ -6,6 +6,10 @@
     data/demo_<i>/rewards     [T] float32, 1 at the step that succeeded
     data/demo_<i>/dones       [T] uint8, 1 at the last step
                               attrs: seed, num_samples
+A suite may add its own keys (LIBERO: `problem_info`, `env_args`, `bddl_file_name` on `data`;
+`obs/ee_states`, `obs/gripper_states`, `obs/joint_states`, `states`, `robot_states` per demo, as
+LIBERO's create_dataset.py writes them); `data.attrs["extra_keys"]` lists the per-demo ones,
+which are kept for other tools and not read back as observations.
 
 Files are keyed by a hash of everything that produced them, written atomically, and checked on
 read: a corrupt file or one made for other settings is an error, never silently reused.
@@ -15,7 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import h5py
@@ -23,7 +27,7 @@ import numpy as np
 
 from harness.atomic import atomic_path
 from harness.errors import DemoFileError
-from suites import Suite, episode_seeds
+from suites import Suite
 from suites.base import run_expert_episode
 
 FORMAT_VERSION = 1
@@ -35,6 +39,7 @@ class Episode:
     actions: np.ndarray  # [T, A]
     obs: dict[str, np.ndarray]  # key -> [T, ...]
     seed: int
+    extras: dict[str, np.ndarray] = field(default_factory=dict)  # path in the demo group -> [T, ...]
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -53,9 +58,13 @@ class DemoSpec:
     cameras: bool = False
     image_size: int = 84
     format_version: int = FORMAT_VERSION
+    source: str = ""  # the user's demos_dir where demos come from files, not the expert
 
     def key(self) -> str:
-        blob = json.dumps(asdict(self), sort_keys=True)
+        fields = asdict(self)
+        if not self.source:  # keys made before `source` existed stay valid
+            del fields["source"]
+        blob = json.dumps(fields, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def filename(self) -> str:
@@ -68,7 +77,8 @@ def rollout_expert(suite: Suite, env, seed: int, max_steps: int) -> Episode | No
     if not run.success:
         return None
     stacked = {k: np.stack([o[k] for o in run.observations]) for k in run.observations[0]}
-    return Episode(np.stack(run.actions).astype(np.float32), stacked, seed)
+    extras = {k: np.stack([e[k] for e in run.extras]) for k in run.extras[0]}
+    return Episode(np.stack(run.actions).astype(np.float32), stacked, seed, extras)
 
 
 def generate_demos(suite: Suite, spec: DemoSpec, progress: bool = True) -> list[Episode]:
@@ -76,7 +86,7 @@ def generate_demos(suite: Suite, spec: DemoSpec, progress: bool = True) -> list[
     from tqdm import tqdm
 
     env = suite.make_env(spec.task, cameras=spec.cameras, image_size=spec.image_size)
-    seeds = episode_seeds(suite.name, spec.task, spec.split, spec.num_demos * MAX_ATTEMPTS_PER_DEMO)
+    seeds = suite.episode_keys(spec.task, spec.split, spec.num_demos * MAX_ATTEMPTS_PER_DEMO)
     episodes: list[Episode] = []
     bar = tqdm(total=spec.num_demos, desc=f"demos {spec.task} ({spec.split})", disable=not progress,
                leave=False)
@@ -93,23 +103,33 @@ def generate_demos(suite: Suite, spec: DemoSpec, progress: bool = True) -> list[
         env.close()
     raise DemoFileError(
         f"expert for task {spec.task!r} succeeded on only {len(episodes)} of {len(seeds)} "
-        f"episodes within {spec.max_episode_steps} steps; raise max_episode_steps"
+        f"episodes within {spec.max_episode_steps} steps; "
+        + ("raise max_episode_steps" if suite.max_steps(spec.task) is None
+           else "that is the task's own step limit: the expert needs mending (on LIBERO, "
+                "demos_dir= trains on LIBERO's dataset files instead)")
     )
 
 
-def write_demo_file(path: Path, episodes: list[Episode], spec: DemoSpec, instruction: str) -> None:
+def write_demo_file(path: Path, episodes: list[Episode], spec: DemoSpec, instruction: str,
+                    attrs: dict[str, str] | None = None) -> None:
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             data = f.create_group("data")
+            data.attrs.update(attrs or {})
             data.attrs.update(instruction=instruction, task=spec.task, suite=spec.suite,
                               cache_key=spec.key(), settings=json.dumps(asdict(spec), sort_keys=True),
                               total=sum(len(e) for e in episodes))
+            extra_keys = sorted({k for e in episodes for k in e.extras})
+            if extra_keys:
+                data.attrs["extra_keys"] = json.dumps(extra_keys)
             for i, episode in enumerate(episodes):
                 demo = data.create_group(f"demo_{i}")
                 demo.attrs.update(seed=episode.seed, num_samples=len(episode))
                 demo.create_dataset("actions", data=episode.actions)
                 for key, value in episode.obs.items():
                     demo.create_dataset(f"obs/{key}", data=value)
+                for key, value in episode.extras.items():
+                    demo.create_dataset(key, data=value)
                 rewards = np.zeros(len(episode), np.float32)
                 rewards[-1] = 1.0
                 demo.create_dataset("rewards", data=rewards)
@@ -132,13 +152,14 @@ def read_demo_file(path: Path, expected: DemoSpec | None = None) -> tuple[str, l
             names = sorted((k for k in data if k.startswith("demo_")), key=lambda k: int(k[5:]))
             if not names:
                 raise DemoFileError(f"demo file {path} holds no demo_<i> groups")
+            extra_keys = set(json.loads(data.attrs.get("extra_keys", "[]")))
             episodes = []
             for name in names:
                 demo = data[name]
                 for key in ("actions", "obs"):
                     if key not in demo:
                         raise DemoFileError(f"demo file {path}: {name} is missing '{key}'")
-                obs = {k: demo["obs"][k][()] for k in demo["obs"]}
+                obs = {k: demo["obs"][k][()] for k in demo["obs"] if f"obs/{k}" not in extra_keys}
                 episodes.append(Episode(demo["actions"][()], obs, int(demo.attrs.get("seed", -1))))
             return str(data.attrs.get("instruction", "")), episodes
     except DemoFileError:
@@ -154,5 +175,5 @@ def load_or_generate(suite: Suite, spec: DemoSpec, cache_dir: Path, progress: bo
     if path.exists():
         return read_demo_file(path, spec)[1]
     episodes = generate_demos(suite, spec, progress=progress)
-    write_demo_file(path, episodes, spec, suite.instruction(spec.task))
+    write_demo_file(path, episodes, spec, suite.instruction(spec.task), suite.demo_file_attrs(spec.task))
     return episodes

@@ -34,7 +34,7 @@ import torch
 from harness.datasets import TrainingData, instruction_entries
 from harness.device import autocast
 from harness.seeding import generator
-from suites import Observation, StepResult, Suite, episode_seeds, get_suite
+from suites import Observation, StepResult, Suite, get_suite
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,8 @@ class EvalSettings:
 @dataclass(frozen=True)
 class EvalEpisode:
     task: str
-    seed: int
+    seed: int  # the suite's reset key: a seed, or for LIBERO the fixed init state's index
+    max_steps: int  # the task's step limit (the suite's own where it has one, e.g. LIBERO's)
 
 
 @dataclass(frozen=True)
@@ -178,7 +179,7 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
         for s, result in zip(running, results):
             s.t += 1
             s.obs = result.obs
-            if result.success or s.t >= settings.max_episode_steps:
+            if result.success or s.t >= episodes[s.episode].max_steps:
                 outcomes[s.episode] = (result.success, s.t)
                 s.episode = None
                 waiting.append(s)
@@ -193,8 +194,10 @@ def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndar
                     lambda tasks: LocalSimulators(envs, tasks), settings.envs_per_task, align_chunks)
 
 
-def evaluation_episodes(suite_name: str, tasks: list[str], n: int) -> list[EvalEpisode]:
-    return [EvalEpisode(t, s) for t in tasks for s in episode_seeds(suite_name, t, "eval", n)]
+def evaluation_episodes(suite: Suite, tasks: list[str], n: int, max_episode_steps: int
+                        ) -> list[EvalEpisode]:
+    return [EvalEpisode(t, key, suite.step_limit(t, max_episode_steps))
+            for t in tasks for key in suite.episode_keys(t, "eval", n)]
 
 
 def group_by_task(episodes: list[EvalEpisode], outcomes: list[tuple[bool, int]]
@@ -297,7 +300,8 @@ class Evaluator:
 
     def evaluate(self, policy, tasks: list[str], instructions: dict[str, np.ndarray],
                  noise_seed: int) -> dict[str, TaskEvaluation]:
-        episodes = evaluation_episodes(self.suite.name, tasks, self.settings.episodes)
+        episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes,
+                                       self.settings.max_episode_steps)
         on_accelerator = policy_device(policy).type != "cpu"
         central = on_accelerator if self.central_policy is None else self.central_policy
         if self._local is not None:

@@ -254,7 +254,7 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200) -> No
     suite = get_suite("metaworld")
     benchmark = load_benchmark("mw-quick")
     mw_quick_tasks = benchmark.foundation_tasks + benchmark.stream_tasks
-    eps = evaluation_episodes("metaworld", mw_quick_tasks, episodes)
+    eps = evaluation_episodes(suite, mw_quick_tasks, episodes, max_steps)
     settings = EvalSettings(episodes, max_steps, n_action_steps=4)
     ctx = get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=ctx) as pool:  # warm: imports and env builds

@@ -10,7 +10,7 @@ from suites.base import Observation, StepResult, Suite, TaskEnv, UnknownName, ep
 _SUITES: dict[str, str] = {
     # name -> module that defines and registers it; imported lazily (simulators are slow to load)
     "metaworld": "suites.metaworld",
-    "libero_rs": "suites.robosuite_libero",
+    "libero": "suites.libero",
     "bimanual": "suites.bimanual",
 }
 _FACTORIES: dict[str, Callable[[], Suite]] = {}

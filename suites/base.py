@@ -10,7 +10,7 @@ from __future__ import annotations
 import hashlib
 import os
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -54,6 +54,11 @@ class TaskEnv(ABC):
     def expert_action(self) -> np.ndarray:
         """The scripted expert's action for the current state (it may read privileged state)."""
 
+    def demo_extras(self) -> dict[str, np.ndarray]:
+        """Extra arrays a demo file keeps for the current step beside the observation, at paths
+        inside its demo group (LIBERO's "obs/ee_states", "states", ...); none by default."""
+        return {}
+
     def close(self) -> None:  # noqa: B027 - optional
         pass
 
@@ -89,6 +94,25 @@ class Suite(ABC):
         """Part of the demo-cache key: bump when observations, experts or success change."""
         return "1"
 
+    def episode_keys(self, task: str, split: str, n: int) -> list[int]:
+        """The `reset` keys of a task's episodes of one split ("demo", "heldout", "eval"):
+        seeds by default; a suite with fixed initial states (LIBERO) maps them its own way."""
+        return episode_seeds(self.name, task, split, n)
+
+    def max_steps(self, task: str) -> int | None:
+        """The task's own episode step limit, part of the suite's protocol (LIBERO's per-suite
+        limits), or None: the benchmark's max_episode_steps applies."""
+        return None
+
+    def step_limit(self, task: str, max_episode_steps: int) -> int:
+        """The limit demos and evaluation use: the task's own where it has one."""
+        own = self.max_steps(task)
+        return max_episode_steps if own is None else own
+
+    def demo_file_attrs(self, task: str) -> dict[str, str]:
+        """Extra attributes of a demo file's `data` group (LIBERO's problem_info, ...)."""
+        return {}
+
 
 class TaskTableSuite(Suite):
     """A suite whose tasks are the entries of a table: name -> spec with an `instruction`."""
@@ -109,6 +133,7 @@ class ExpertEpisode:
     steps: int
     observations: list[Observation]  # the observation before each action, when recorded
     actions: list[np.ndarray]
+    extras: list[dict[str, np.ndarray]] = field(default_factory=list)  # env.demo_extras()
 
 
 def run_expert_episode(env: TaskEnv, seed: int, max_steps: int, record: bool = False) -> ExpertEpisode:
@@ -121,6 +146,7 @@ def run_expert_episode(env: TaskEnv, seed: int, max_steps: int, record: bool = F
         if record:
             episode.observations.append(obs)
             episode.actions.append(action)
+            episode.extras.append(env.demo_extras())
         result = env.step(action)
         obs, episode.steps = result.obs, episode.steps + 1
         if result.success:

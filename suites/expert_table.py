@@ -1,10 +1,11 @@
 """Run every task's scripted expert on its evaluation episodes and rewrite a suite's README table.
 
-    python -m suites.robosuite_libero.expert_table [--episodes N] [--tasks a,b] [--no-write]
-    python -m suites.bimanual.expert_table ...
+    python -m suites.bimanual.expert_table [--episodes N] [--tasks a,b] [--no-write]
+    python -m suites.libero.expert_table [libero_object ...] [--episodes N] ...
 
-The harness's protocol: the task's evaluation seeds, at most `max_episode_steps`, stopping at
-the first success. The table sits between two marker comments, so the prose around it is kept.
+The harness's protocol: the task's evaluation episodes (`Suite.episode_keys`: seeds, or LIBERO's
+fixed init states), at most the task's step limit, stopping at the first success. The table sits
+between two marker comments (one block per LIBERO suite), so the prose around it is kept.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from suites import get_suite
-from suites.base import episode_seeds, run_expert_episode
+from suites.base import run_expert_episode
 
 BEGIN, END = "<!-- expert-table:begin -->", "<!-- expert-table:end -->"
 
@@ -31,11 +32,19 @@ class ExpertResult:
     mean_length: float  # steps to first success (max_episode_steps for a failure)
 
 
+def markers(block: str = "") -> tuple[str, str]:
+    """The comments around a table: BEGIN/END, or per named block (a LIBERO suite)."""
+    if not block:
+        return BEGIN, END
+    return f"<!-- expert-table:{block}:begin -->", f"<!-- expert-table:{block}:end -->"
+
+
 def run_expert(suite, task: str, episodes: int, group: str = "") -> ExpertResult:
     env = suite.make_env(task)
+    limit = suite.step_limit(task, suite.max_episode_steps)
     try:
-        runs = [run_expert_episode(env, seed, suite.max_episode_steps)
-                for seed in episode_seeds(suite.name, task, "eval", episodes)]
+        runs = [run_expert_episode(env, key, limit)
+                for key in suite.episode_keys(task, "eval", episodes)]
     finally:
         env.close()
     return ExpertResult(task, group, sum(r.success for r in runs), episodes,
@@ -57,23 +66,27 @@ def render_table(results: list[ExpertResult], steps_per_s: float) -> str:
     return "\n".join(lines)
 
 
-def write_table(table: str, readme: Path) -> None:
+def write_table(table: str, readme: Path, block: str = "") -> None:
+    begin, end = markers(block)
     text = readme.read_text()
-    pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.DOTALL)
+    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.DOTALL)
     if not pattern.search(text):
-        raise ValueError(f"{readme}: no {BEGIN} ... {END} block to replace")
-    readme.write_text(pattern.sub(lambda _m: f"{BEGIN}\n{table}\n{END}", text))
+        raise ValueError(f"{readme}: no {begin} ... {end} block to replace")
+    readme.write_text(pattern.sub(lambda _m: f"{begin}\n{table}\n{end}", text))
 
 
 def main(suite_name: str, readme: Path, group_of: Callable[[str], str] = lambda task: "",
-         argv=None) -> None:
+         argv=None, tasks: list[str] | None = None, block: str = "", episodes: int = 20) -> None:
+    """`tasks` (default: all of the suite's) and `block` (the README block) come from a suite's
+    own command (LIBERO: one of its five suites)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--episodes", type=int, default=episodes)
     parser.add_argument("--tasks", default="", help="comma-separated subset (default: all)")
     parser.add_argument("--no-write", action="store_true", help="print only")
     args = parser.parse_args(argv)
     suite = get_suite(suite_name)
-    tasks = [suite.check_task(t) for t in args.tasks.split(",") if t] or suite.task_names()
+    tasks = ([suite.check_task(t) for t in args.tasks.split(",") if t] or tasks
+             or suite.task_names())
     results, start = [], time.perf_counter()
     for task in tasks:
         results.append(run_expert(suite, task, args.episodes, group_of(task)))
@@ -83,5 +96,5 @@ def main(suite_name: str, readme: Path, group_of: Callable[[str], str] = lambda 
     table = render_table(results, steps / (time.perf_counter() - start))
     print(table)
     if not args.no_write:
-        write_table(table, readme)
+        write_table(table, readme, block)
         print(f"wrote {readme}")

@@ -1,5 +1,6 @@
-"""What the two robosuite suites (libero_rs, bimanual) share: robosuite's default table, the units
-of its OSC_POSE delta actions, the env settings, per-episode seeding and image orientation."""
+"""What our own robosuite scenes (the bimanual suite) build on: robosuite's default table, the
+units of its OSC_POSE delta actions, the env settings, per-episode seeding and image orientation.
+Real LIBERO (suites/libero) brings its own scenes and env class."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ ROT_SCALE = 0.5  # radians per unit action
 
 
 def env_kwargs(cameras: bool, image_size: int, camera_names: str | list[str]) -> dict:
-    """robosuite env keyword arguments both suites use: 20 Hz control, episodes ended by the
+    """robosuite env keyword arguments: 20 Hz control, episodes ended by the
     harness (never by robosuite), reset in place, cameras only when images are asked for."""
     return dict(
         control_freq=20,

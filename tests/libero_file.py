@@ -1,4 +1,6 @@
-"""A synthetic file in exactly LIBERO's HDF5 layout, for the reader and data tests."""
+"""A file in exactly LIBERO's dataset layout (as its create_dataset.py writes it), for the reader
+tests. Its `states` are real sim states of the task (rows of its init-state file), so the reader
+can rebuild the suite's state from them; the other arrays are arbitrary but well-shaped."""
 
 from __future__ import annotations
 
@@ -8,21 +10,30 @@ import h5py
 import numpy as np
 
 
-def write_libero_file(path, lengths=(5, 7), images=True, drop: str | None = None,
-                      instruction="put the bowl on the plate", image_size: int = 8):
-    """Write demos of `lengths` steps; `drop` omits one dataset of demo_0 ("obs/ee_states")."""
+def write_libero_file(path, task: str, states: np.ndarray, lengths=(5, 7), images=True,
+                      drop: str | None = None, instruction="a task", bddl_file: str = "",
+                      image_size: int = 8):
+    """Demos of `lengths` steps whose states are consecutive rows of `states`; `drop` omits one
+    dataset of demo_0 (e.g. "obs/ee_states")."""
     rng = np.random.default_rng(0)
     with h5py.File(path, "w") as f:
         data = f.create_group("data")
-        data.attrs["problem_info"] = json.dumps({"language_instruction": instruction})
+        data.attrs["problem_info"] = json.dumps({"language_instruction": instruction,
+                                                 "problem_name": "libero_floor_manipulation"})
+        data.attrs["bddl_file_name"] = bddl_file or f"libero/bddl_files/x/{task}.bddl"
+        data.attrs["env_args"] = json.dumps({"type": 1, "env_name": "Libero_Floor_Manipulation"})
+        start = 0
         for i, steps in enumerate(lengths):
             demo = data.create_group(f"demo_{i}")
             fields = {
                 "actions": rng.uniform(-1, 1, (steps, 7)),
+                "states": states[start:start + steps],
                 "obs/ee_states": rng.normal(size=(steps, 6)),
                 "obs/gripper_states": rng.normal(size=(steps, 2)),
                 "obs/joint_states": rng.normal(size=(steps, 7)),
+                "rewards": np.zeros(steps), "dones": np.zeros(steps, np.uint8),
             }
+            start += steps
             if images:
                 for key in ("agentview_rgb", "eye_in_hand_rgb"):
                     fields[f"obs/{key}"] = rng.integers(

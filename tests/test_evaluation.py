@@ -20,7 +20,7 @@ def _setup():
 
 def test_outcomes_do_not_depend_on_how_many_simulators_run_them():
     suite, policy, instructions = _setup()
-    episodes = evaluation_episodes("metaworld", TASKS, 3)
+    episodes = evaluation_episodes(suite, TASKS, 3, 25)
     out = {}
     for per_task in (1, 3):
         settings = EvalSettings(episodes=3, max_episode_steps=25, n_action_steps=3,

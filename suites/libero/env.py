@@ -1,0 +1,195 @@
+"""`LiberoTaskEnv`: one real LIBERO task as a harness `TaskEnv`.
+
+Episodes (`reset(key)`):
+  key < FRESH_PLACEMENT  LIBERO's fixed init state `key mod 50` from the task's init file, set
+                         after a reset as LIBERO's evaluation does (evaluation episode i uses i).
+  key >= FRESH_PLACEMENT a fresh scene from LIBERO's own placement sampler, seeded by the key
+                         (demo and held-out episodes: the distribution LIBERO drew its init
+                         states from, but never one of the 50 evaluation states).
+Either way SETTLE_STEPS no-op steps follow (gripper open) while objects settle; they are not
+part of the episode, as in LIBERO's evaluations.
+
+State layout (STATE_DIM = 65, one layout per task, zeros in unused object slots):
+  [0:3]  end-effector position (world, m)   [3:7] end-effector quaternion (xyzw)
+  [7:9]  gripper finger joint positions
+  [9:65] MAX_OBJECTS = 8 slots x (position 3, quaternion xyzw 4): the task's movable objects in
+         its BDDL file's order (`env.objects`), the same order every episode.
+With cameras, also `agentview_rgb` and `eye_in_hand_rgb` (uint8 HxWx3), exactly as LIBERO's
+dataset files store them: robosuite's renders unflipped (OpenGL convention, bottom row first).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
+from harness.errors import RetainError
+from suites.base import Observation, StepResult, TaskEnv
+from suites.libero.install import ensure_installed
+from suites.libero.tasks import (
+    MAX_OBJECTS,
+    NUM_INIT_STATES,
+    OBJECT_DIM,
+    PROPRIO_DIM,
+    SETTLE_STEPS,
+    STATE_DIM,
+    LiberoTask,
+    init_states,
+)
+
+FRESH_PLACEMENT = 1 << 30
+NOOP = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)  # LIBERO's dummy action: hold, open
+CAMERAS = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "robot0_eye_in_hand"}
+
+
+def patch_floor_mount() -> None:
+    """rpent-libero 0.2.0 gives its floor robot no base, and robosuite 1.5's robot_base_factory
+    fails on None (libero_object's scenes): give it robosuite's NullMount, as LIBERO 1.4 had."""
+    from libero.libero.envs.robots.on_the_ground_panda import OnTheGroundPanda
+
+    prop = OnTheGroundPanda.__dict__.get("default_base")
+    if isinstance(prop, property) and prop.fget(None) is None:  # left alone once fixed upstream
+        OnTheGroundPanda.default_base = property(lambda self: "NullMount")
+
+
+def make_raw_env(task: LiberoTask, cameras: bool, image_size: int):
+    """LIBERO's own env class (`ControlEnv`, the base of `OffScreenRenderEnv`, which only forces
+    rendering on): OSC_POSE at 20 Hz as LIBERO sets it, rendering only when cameras are on."""
+    ensure_installed()
+    patch_floor_mount()
+    from libero.libero.envs.env_wrapper import ControlEnv
+
+    return ControlEnv(bddl_file_name=task.bddl_file, has_renderer=False,
+                      has_offscreen_renderer=cameras, use_camera_obs=cameras,
+                      camera_names=list(CAMERAS.values()), camera_heights=image_size,
+                      camera_widths=image_size, horizon=10**9, ignore_done=True,
+                      hard_reset=False)  # reset in place: reloading the model costs seconds
+
+
+def _quat2axisangle(quat: np.ndarray) -> np.ndarray:
+    from robosuite.utils.transform_utils import quat2axisangle
+
+    return quat2axisangle(np.asarray(quat, dtype=np.float64))
+
+
+class NoExpert(RetainError):
+    """The task has no scripted expert (yet): demos for it need demos_dir."""
+
+
+class LiberoTaskEnv(TaskEnv):
+    def __init__(self, task: LiberoTask, cameras: bool = False, image_size: int = 128):
+        self.task, self.cameras = task, cameras
+        self.env = make_raw_env(task, cameras, image_size)  # the raw LIBERO env experts get
+        self.objects = [obj.name for obj in self.env.env.objects]  # BDDL order: fixed per task
+        if len(self.objects) > MAX_OBJECTS:
+            raise ValueError(f"LIBERO task {task.name!r} has {len(self.objects)} objects; the "
+                             f"state holds {MAX_OBJECTS}")
+        self.raw_obs: dict | None = None
+        self.expert = None
+        self.expert_error = ""  # why the task has no expert, once asked
+
+    # --- TaskEnv -------------------------------------------------------------------------------
+    def reset(self, key: int) -> Observation:
+        self.start(int(key))
+        for _ in range(SETTLE_STEPS):
+            self.raw_obs, *_ = self.env.step(NOOP)
+        self.expert, self.expert_error = None, ""  # made at the episode's first expert_action
+        return self._observation(self.raw_obs)
+
+    def start(self, key: int) -> None:
+        """The episode's initial sim state, before the settle steps."""
+        if key < FRESH_PLACEMENT:
+            self.env.reset()
+            state = init_states(self.task.name)[key % NUM_INIT_STATES]
+        else:  # LIBERO's samplers draw from numpy's global RNG: seed it for this reset only
+            saved = np.random.get_state()
+            np.random.seed(key % (1 << 32))
+            try:
+                self.env.reset()
+            finally:
+                np.random.set_state(saved)
+            state = self.sim_state()
+        # what the flattened state leaves out (the solver's warm start, the last controls)
+        # would carry the previous episode into this one: clear it, so a key gives one episode
+        data = self.env.sim.data
+        data.qacc_warmstart[:] = 0
+        data.ctrl[:] = 0
+        self.raw_obs = self.env.set_init_state(state)
+
+    def step(self, action: np.ndarray) -> StepResult:
+        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        self.raw_obs, *_ = self.env.step(action)
+        return StepResult(self._observation(self.raw_obs), self.success())
+
+    def success(self) -> bool:
+        """LIBERO's BDDL goal."""
+        return bool(self.env.check_success())
+
+    def expert_action(self) -> np.ndarray:
+        if self.expert is None and not self.expert_error:
+            self._make_expert()
+        if self.expert is None:
+            raise NoExpert(f"no scripted expert for LIBERO task {self.task.name!r} "
+                           f"({self.expert_error}); train it on LIBERO's files with demos_dir=")
+        return np.asarray(self.expert.act(self.raw_obs), dtype=np.float32)
+
+    def demo_extras(self) -> dict[str, np.ndarray]:
+        """LIBERO's per-step dataset keys (as its create_dataset.py writes them)."""
+        raw = self.raw_obs
+        eef_pos, eef_quat, grip = raw["robot0_eef_pos"], raw["robot0_eef_quat"], raw["robot0_gripper_qpos"]
+        ori = _quat2axisangle(eef_quat)
+        return {
+            "obs/ee_states": np.concatenate([eef_pos, ori]),
+            "obs/ee_pos": np.asarray(eef_pos),
+            "obs/ee_ori": ori,
+            "obs/gripper_states": np.asarray(grip),
+            "obs/joint_states": np.asarray(raw["robot0_joint_pos"]),
+            "states": self.sim_state(),
+            "robot_states": np.concatenate([grip, eef_pos, eef_quat]),
+        }
+
+    def close(self) -> None:
+        self.env.close()
+
+    # --- helpers -------------------------------------------------------------------------------
+    def sim_state(self) -> np.ndarray:
+        """The flattened MuJoCo state, LIBERO's `states` (and init-state) format."""
+        return np.asarray(self.env.get_sim_state())
+
+    def observation_from_sim_state(self, state: np.ndarray) -> Observation:
+        """The observation at a recorded sim state (reading a LIBERO dataset file's `states`)."""
+        self.raw_obs = self.env.regenerate_obs_from_state(np.asarray(state, dtype=np.float64))
+        return self._observation(self.raw_obs)
+
+    def _make_expert(self) -> None:
+        """The task's expert (suites.libero.experts), built once per episode from the settled
+        scene: lazily, so evaluating a policy never depends on an expert."""
+        try:
+            from suites.libero.experts import make_expert
+        except ModuleNotFoundError as err:
+            if err.name != "suites.libero.experts":
+                raise
+            self.expert_error = "suites.libero.experts is not installed"
+            return
+        try:
+            self.expert = make_expert(self.task.name, self.env)
+        except (NotImplementedError, KeyError) as err:
+            self.expert_error = str(err).strip("'\"") or type(err).__name__
+
+    def state(self, raw: dict) -> np.ndarray:
+        state = np.zeros(STATE_DIM, dtype=np.float32)
+        state[0:3] = raw["robot0_eef_pos"]
+        state[3:7] = raw["robot0_eef_quat"]
+        state[7:9] = raw["robot0_gripper_qpos"]
+        for i, name in enumerate(self.objects):
+            start = PROPRIO_DIM + OBJECT_DIM * i
+            state[start:start + 3] = raw[f"{name}_pos"]
+            state[start + 3:start + 7] = raw[f"{name}_quat"]
+        return state
+
+    def _observation(self, raw: dict) -> Observation:
+        obs = {"state": self.state(raw)}
+        if self.cameras:
+            for key, camera in CAMERAS.items():
+                obs[key] = np.asarray(raw[f"{camera}_image"], dtype=np.uint8)
+        return obs

@@ -1,0 +1,91 @@
+"""LIBERO's 130 tasks, read from the installed `libero` package: suite, name, instruction.
+
+Task names are LIBERO's own (its BDDL file names without `.bddl`, which are also its dataset
+file names `<name>_demo.hdf5`), e.g. `pick_up_the_alphabet_soup_and_place_it_in_the_basket` or
+`KITCHEN_SCENE3_turn_on_the_stove`. The 130 names are distinct across the five suites (LIBERO-90
+and LIBERO-10 carry their scene in the name), so no qualification is needed; a test keeps it so.
+Instructions are LIBERO's `Task.language`. They are NOT all distinct: LIBERO-90 repeats some
+("open the top drawer of the cabinet") in different scenes, as LIBERO itself does.
+
+Suite order is LIBERO's standard task order (task_order_index 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+
+from suites.libero.install import point_libero_at_config
+
+SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
+# per-suite episode step limits of the public VLA evaluations (OpenVLA's LIBERO protocol)
+MAX_STEPS = {"libero_spatial": 220, "libero_object": 280, "libero_goal": 300, "libero_10": 520,
+             "libero_90": 400}
+NUM_INIT_STATES = 50  # every task's init-state file holds 50 states
+SETTLE_STEPS = 10  # no-op steps after an init state, while objects settle (not counted)
+
+# state layout (see env.py): proprioception, then MAX_OBJECTS object slots of pos + quat
+PROPRIO_DIM = 9  # eef position 3, eef quaternion (xyzw) 4, gripper finger joints 2
+OBJECT_DIM = 7
+MAX_OBJECTS = 8  # the most objects of any of the 130 tasks (measured; a test checks it)
+STATE_DIM = PROPRIO_DIM + OBJECT_DIM * MAX_OBJECTS
+
+
+@dataclass(frozen=True)
+class LiberoTask:
+    name: str
+    suite: str  # libero_spatial, libero_object, ...
+    index: int  # position in its suite's standard order
+    instruction: str
+    bddl_file: str  # absolute path
+    init_states_file: str  # absolute path
+
+    @property
+    def max_steps(self) -> int:
+        return MAX_STEPS[self.suite]
+
+
+def _benchmark(suite: str):
+    point_libero_at_config()
+    import contextlib
+    import io
+
+    from libero.libero.benchmark import get_benchmark_dict
+
+    with contextlib.redirect_stdout(io.StringIO()):  # it prints "[info] using task orders ..."
+        return get_benchmark_dict()[suite]()
+
+
+@cache
+def all_tasks() -> dict[str, LiberoTask]:
+    """name -> task, suites in SUITES order, each in LIBERO's standard order."""
+    import os
+
+    point_libero_at_config()
+    from libero.libero import get_libero_path
+
+    out: dict[str, LiberoTask] = {}
+    for suite in SUITES:
+        bench = _benchmark(suite)
+        init_dir = get_libero_path("init_states")
+        for i, task in enumerate(bench.tasks):
+            if task.name in out:
+                raise RuntimeError(f"LIBERO task name {task.name!r} is in two suites")
+            out[task.name] = LiberoTask(
+                task.name, suite, i, task.language, bench.get_task_bddl_file_path(i),
+                os.path.join(init_dir, task.problem_folder, task.init_states_file))
+    return out
+
+
+def suite_tasks(suite: str) -> list[str]:
+    """One suite's task names in LIBERO's standard order."""
+    return [t.name for t in all_tasks().values() if t.suite == suite]
+
+
+@cache
+def init_states(task: str):
+    """The task's 50 fixed init states (flattened MuJoCo states), as LIBERO's benchmark loads them."""
+    import numpy as np
+    import torch
+
+    return np.asarray(torch.load(all_tasks()[task].init_states_file, weights_only=False))

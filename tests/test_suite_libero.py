@@ -1,0 +1,301 @@
+"""Real LIBERO (suite "libero"): its 130 tasks, LIBERO's init-state evaluation protocol, the
+fixed state layout, the asset check, and demo files in LIBERO's layout both ways.
+Building a LIBERO env takes seconds: this file builds six (one per suite, one with cameras, one
+for demos_dir)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+
+import h5py
+import numpy as np
+import pytest
+
+from harness.config import BenchConfig
+from harness.demos import DemoSpec, Episode, read_demo_file, write_demo_file
+from harness.errors import RetainError
+from harness.evaluation import evaluation_episodes
+from suites import get_suite
+from suites.libero import install
+from suites.libero.env import FRESH_PLACEMENT, NoExpert
+from suites.libero.files import read_libero_file, task_file
+from suites.libero.tasks import (
+    MAX_OBJECTS,
+    MAX_STEPS,
+    NUM_INIT_STATES,
+    STATE_DIM,
+    SUITES,
+    all_tasks,
+    init_states,
+    suite_tasks,
+)
+from tests.libero_file import write_libero_file
+
+SUITE = get_suite("libero")
+OBJECT_TASK = "pick_up_the_alphabet_soup_and_place_it_in_the_basket"
+SPATIAL_TASK = "pick_up_the_black_bowl_between_the_plate_and_the_ramekin_and_place_it_on_the_plate"
+
+
+@pytest.fixture(scope="module")
+def object_env():
+    env = SUITE.make_env(OBJECT_TASK)
+    yield env
+    env.close()
+
+
+def test_five_suites_130_tasks_with_libero_names_and_instructions():
+    sizes = {s: len(suite_tasks(s)) for s in SUITES}
+    assert sizes == {"libero_spatial": 10, "libero_object": 10, "libero_goal": 10,
+                     "libero_10": 10, "libero_90": 90}
+    names = SUITE.task_names()
+    assert len(names) == len(set(names)) == 130  # distinct without qualification
+    assert suite_tasks("libero_object")[0] == OBJECT_TASK  # LIBERO's standard order
+    assert SUITE.instruction(OBJECT_TASK) == "pick up the alphabet soup and place it in the basket"
+    assert all(SUITE.instruction(t) for t in names)
+    assert {SUITE.max_steps(t) for t in suite_tasks("libero_goal")} == {300}
+    assert SUITE.max_steps("KITCHEN_SCENE1_put_the_black_bowl_on_the_plate") == MAX_STEPS["libero_90"]
+    with pytest.raises(ValueError, match="unknown libero task 'no_such_task'; valid: ") as err:
+        SUITE.make_env("no_such_task")
+    assert "\n" not in str(err.value)
+
+
+def test_max_objects_is_the_most_any_task_has():
+    from libero.libero.envs.bddl_utils import robosuite_parse_problem
+
+    counts = [sum(len(v) for v in robosuite_parse_problem(t.bddl_file)["objects"].values())
+              for t in all_tasks().values()]
+    assert max(counts) == MAX_OBJECTS and STATE_DIM == SUITE.state_dim == 9 + 7 * MAX_OBJECTS
+
+
+def test_evaluation_episode_i_starts_from_init_state_i_mod_50(object_env):
+    keys = SUITE.episode_keys(OBJECT_TASK, "eval", 53)
+    assert keys == list(range(53))
+    for key in (0, 3, 52):
+        object_env.start(key)  # before the settle steps
+        np.testing.assert_array_equal(object_env.sim_state(), init_states(OBJECT_TASK)[key % 50])
+    first = object_env.reset(3)["state"]
+    np.testing.assert_array_equal(object_env.reset(3)["state"], first)
+    assert not np.array_equal(object_env.reset(4)["state"], first)
+    # evaluation runs each task for its LIBERO suite's limit, whatever the benchmark's default
+    episodes = evaluation_episodes(SUITE, [OBJECT_TASK, SPATIAL_TASK], 2, 100)
+    assert [(e.seed, e.max_steps) for e in episodes] == [(0, 280), (1, 280), (0, 220), (1, 220)]
+
+
+def test_demo_episodes_are_fresh_seeded_scenes_not_evaluation_states(object_env):
+    keys = SUITE.episode_keys(OBJECT_TASK, "demo", 2)
+    assert all(k >= FRESH_PLACEMENT for k in keys)
+    object_env.start(keys[0])
+    first = object_env.sim_state()
+    object_env.start(keys[1])
+    assert not np.allclose(object_env.sim_state(), first)
+    object_env.start(keys[0])
+    np.testing.assert_array_equal(object_env.sim_state(), first)
+    assert not np.isclose(init_states(OBJECT_TASK), first).all(axis=1).any()
+
+
+def test_state_layout_is_fixed_per_task(object_env):
+    obs = object_env.reset(7)
+    state, raw = obs["state"], object_env.raw_obs
+    assert state.shape == (STATE_DIM,) and state.dtype == np.float32
+    np.testing.assert_allclose(state[0:3], raw["robot0_eef_pos"], rtol=1e-6)
+    np.testing.assert_allclose(state[7:9], raw["robot0_gripper_qpos"], rtol=1e-6)
+    objects = object_env.objects
+    assert objects[:2] == ["alphabet_soup_1", "basket_1"] and len(objects) == 7  # BDDL order
+    for i, name in enumerate(objects):
+        np.testing.assert_allclose(state[9 + 7 * i:12 + 7 * i], raw[f"{name}_pos"], rtol=1e-6)
+        np.testing.assert_allclose(state[12 + 7 * i:16 + 7 * i], raw[f"{name}_quat"], rtol=1e-6)
+    assert not state[9 + 7 * len(objects):].any()  # unused slots
+    object_env.reset(8)
+    assert object_env.objects == objects
+    result = object_env.step(np.zeros(7))
+    assert isinstance(result.success, bool) and np.isfinite(result.obs["state"]).all()
+
+
+def test_spatial_task_with_cameras_steps_and_renders():
+    env = SUITE.make_env(SPATIAL_TASK, cameras=True, image_size=32)  # needs MUJOCO_GL=egl
+    try:
+        obs = env.reset(0)
+        assert obs["state"].shape == (STATE_DIM,)
+        for key in ("agentview_rgb", "eye_in_hand_rgb"):
+            assert obs[key].shape == (32, 32, 3) and obs[key].dtype == np.uint8 and obs[key].any()
+        rng = np.random.default_rng(0)
+        for _ in range(5):
+            result = env.step(rng.uniform(-1, 1, 7))
+        assert result.success is False and result.obs["agentview_rgb"].shape == (32, 32, 3)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("suite_name, index", [("libero_goal", 0), ("libero_10", 9), ("libero_90", 0)])
+def test_a_task_of_every_other_suite_builds_steps_and_reports_success(suite_name, index):
+    from suites.libero.build_all import check_task
+
+    _built, objects = check_task(SUITE, suite_tasks(suite_name)[index], steps=3)
+    assert 1 <= objects <= MAX_OBJECTS
+
+
+def test_task_without_expert_is_a_one_line_error_naming_it(object_env, monkeypatch):
+    def make_expert(task, env):
+        raise NotImplementedError(f"no expert for {task}")
+
+    monkeypatch.setitem(sys.modules, "suites.libero.experts",
+                        types.SimpleNamespace(make_expert=make_expert))
+    object_env.reset(0)
+    with pytest.raises(NoExpert, match=OBJECT_TASK) as err:
+        object_env.expert_action()
+    assert "\n" not in str(err.value)
+
+
+def test_expert_gets_the_raw_env_after_the_settle_and_the_latest_raw_obs(object_env, monkeypatch):
+    seen = []
+
+    class Expert:
+        def act(self, raw):
+            seen.append(raw)
+            return np.ones(7)
+
+    def make_expert(task, env):
+        seen.append((task, env, env.get_sim_state().copy()))
+        return Expert()
+
+    monkeypatch.setitem(sys.modules, "suites.libero.experts",
+                        types.SimpleNamespace(make_expert=make_expert))
+    object_env.reset(5)
+    assert object_env.expert_action().tolist() == [1.0] * 7
+    task, raw_env, state = seen[0]
+    assert task == OBJECT_TASK and raw_env is object_env.env
+    assert not np.array_equal(state, init_states(OBJECT_TASK)[5])  # settled first
+    object_env.step(np.zeros(7))
+    object_env.expert_action()
+    assert len(seen) == 3 and seen[-1] is object_env.raw_obs  # one expert per episode, latest obs
+    object_env.reset(6)
+    object_env.expert_action()
+    assert len(seen) == 5  # a new one after a reset
+
+
+# --- assets ---------------------------------------------------------------------------------------
+
+
+def test_missing_or_broken_assets_stop_with_one_line_saying_how_to_repair(tmp_path):
+    with pytest.raises(install.LiberoAssetsError, match="make venv") as err:
+        install.ensure_installed(source=tmp_path, target=tmp_path / "link")
+    assert "\n" not in str(err.value) and "missing" in str(err.value)
+    (tmp_path / "scenes").mkdir()
+    with pytest.raises(install.LiberoAssetsError, match=r"broken: \d+ of \d+ files missing"):
+        install.ensure_installed(source=tmp_path, target=tmp_path / "link")
+    assert not (tmp_path / "link").exists()
+
+
+def test_assets_link_is_made_once_and_kept(tmp_path):
+    source, target = install.asset_source(), tmp_path / "assets"
+    install.ensure_installed(source=source, target=target)
+    assert target.is_symlink() and target.resolve() == source.resolve()
+    install.ensure_installed(source=source, target=target)  # idempotent
+    assert (target / "scenes").is_dir()
+
+
+# --- demo files in LIBERO's layout ----------------------------------------------------------------
+
+
+def _recorded_episode(env, key: int, steps: int) -> Episode:
+    obs, extras, actions = [env.reset(key)], [], []
+    rng = np.random.default_rng(key)
+    for _ in range(steps):
+        extras.append(env.demo_extras())
+        actions.append(rng.uniform(-1, 1, 7).astype(np.float32))
+        obs.append(env.step(actions[-1]).obs)
+    stack = {k: np.stack([o[k] for o in obs[:-1]]) for k in obs[0]}
+    return Episode(np.stack(actions), stack, key, {k: np.stack([e[k] for e in extras]) for k in extras[0]})
+
+
+def test_suite_demo_file_has_libero_keys_and_round_trips(object_env, tmp_path):
+    episode = _recorded_episode(object_env, FRESH_PLACEMENT + 1, 6)
+    spec = DemoSpec("libero", SUITE.version(), OBJECT_TASK, "demo", 1, 280)
+    path = tmp_path / f"{OBJECT_TASK}_demo.hdf5"
+    write_demo_file(path, [episode], spec, SUITE.instruction(OBJECT_TASK),
+                    SUITE.demo_file_attrs(OBJECT_TASK))
+    with h5py.File(path) as f:
+        data = f["data"]
+        info = json.loads(data.attrs["problem_info"])
+        assert info["problem_name"] == "libero_floor_manipulation"  # LIBERO's own problem_info
+        assert info["language_instruction"] == "pick the alphabet soup and place it in the basket"
+        assert data.attrs["instruction"] == SUITE.instruction(OBJECT_TASK)
+        assert data.attrs["bddl_file_name"].endswith(f"{OBJECT_TASK}.bddl")
+        assert json.loads(data.attrs["env_args"])["env_kwargs"]["controller"] == "OSC_POSE"
+        demo = data["demo_0"]
+        for key, width in (("actions", 7), ("states", len(object_env.sim_state())),
+                           ("obs/ee_states", 6), ("obs/gripper_states", 2), ("obs/joint_states", 7),
+                           ("robot_states", 9)):
+            assert demo[key].shape == (6, width), key
+        assert demo["rewards"].shape == demo["dones"].shape == (6,)
+    _, [back] = read_demo_file(path, spec)
+    assert set(back.obs) == {"state"}  # LIBERO's extra keys are not read back as observations
+    np.testing.assert_array_equal(back.obs["state"], episode.obs["state"])
+    # and LIBERO's own-file reader rebuilds the same states from the file's sim states
+    # and LIBERO's own-file reader rebuilds the states from the file's sim states: the same up to
+    # the motion of one physics substep (robosuite reads its live observation before integrating)
+    [libero_back] = read_libero_file(path, object_env).episodes
+    np.testing.assert_allclose(libero_back["obs"]["state"], episode.obs["state"], atol=3e-3)
+
+
+def test_libero_layout_file_loads_with_state_rebuilt_from_sim_states(object_env, tmp_path):
+    states = init_states(OBJECT_TASK)
+    path = write_libero_file(tmp_path / f"{OBJECT_TASK}_demo.hdf5", OBJECT_TASK, states,
+                             lengths=(4, 6), instruction="pick it up")
+    task = read_libero_file(path, object_env, cameras=True)
+    assert task.instruction == "pick it up" and [len(e["actions"]) for e in task.episodes] == [4, 6]
+    object_env.start(5)  # demo_1's second step is init state 5
+    np.testing.assert_allclose(task.episodes[1]["obs"]["state"][1],
+                               object_env.state(object_env.raw_obs), atol=1e-6)
+    with h5py.File(path) as f:
+        assert np.array_equal(task.episodes[0]["obs"]["agentview_rgb"], f["data/demo_0/obs/agentview_rgb"][()])
+    assert set(read_libero_file(path, object_env).episodes[0]["obs"]) == {"state"}
+    with pytest.raises(ValueError, match="images of 8x8, not image_size=128, in 'data/demo_0/obs/agentview_rgb'"):
+        read_libero_file(path, object_env, cameras=True, image_size=128)
+
+
+@pytest.mark.parametrize("drop", ["obs/gripper_states", "states", "actions"])
+def test_libero_file_missing_a_key_is_one_line_naming_it(object_env, tmp_path, drop):
+    path = write_libero_file(tmp_path / "broken.hdf5", OBJECT_TASK, init_states(OBJECT_TASK),
+                             drop=drop)
+    with pytest.raises(ValueError, match=f"missing key 'data/demo_0/{drop}'") as err:
+        read_libero_file(path, object_env)
+    assert "\n" not in str(err.value) and str(path) in str(err.value)
+
+
+def test_demos_dir_matches_tasks_by_name_and_names_a_missing_one(tmp_path, monkeypatch):
+    from harness.data import user_demos
+
+    states = init_states(OBJECT_TASK)
+    folder = tmp_path / "libero_object"
+    folder.mkdir()
+    write_libero_file(folder / "renamed.hdf5", OBJECT_TASK, states, lengths=(3, 4, 5, 6),
+                      bddl_file=all_tasks()[OBJECT_TASK].bddl_file)
+    assert task_file(folder, OBJECT_TASK) == folder / "renamed.hdf5"  # by its BDDL file name
+    cfg = BenchConfig("t", "libero", [OBJECT_TASK], [SPATIAL_TASK], demos_per_task=2,
+                      heldout_demos_per_task=1, demos_dir=str(folder), cache_dir=str(tmp_path / "c"))
+    splits = user_demos(cfg, SUITE, OBJECT_TASK)
+    assert [len(e) for e in splits["demo"]] == [3, 4] and [len(e) for e in splits["heldout"]] == [6]
+    assert splits["demo"][0].obs["state"].shape == (3, STATE_DIM)
+    monkeypatch.setattr(SUITE, "make_env", lambda *a, **k: pytest.fail("built an env"))
+    cached = user_demos(cfg, SUITE, OBJECT_TASK)  # from the cache: no env is built
+    np.testing.assert_array_equal(cached["heldout"][0].obs["state"], splits["heldout"][0].obs["state"])
+    with pytest.raises(RetainError, match=f"no LIBERO demo file for task '{SPATIAL_TASK}'") as err:
+        user_demos(cfg, SUITE, SPATIAL_TASK)
+    assert "\n" not in str(err.value)
+
+
+def test_expert_table_writes_one_block_per_libero_suite(tmp_path):
+    from suites.expert_table import ExpertResult, markers, render_table, write_table
+
+    readme = tmp_path / "README.md"
+    begin, end = markers("libero_object")
+    other = "\n".join(markers("libero_goal"))
+    readme.write_text(f"intro\n{begin}\nold\n{end}\n{other}\noutro\n")
+    write_table(render_table([ExpertResult(OBJECT_TASK, "", 47, NUM_INIT_STATES, 120.0)], 45.0),
+                readme, "libero_object")
+    text = readme.read_text()
+    assert f"| `{OBJECT_TASK}` | 47/50 (94%) | 120.0 |" in text
+    assert "old" not in text and text.endswith(f"{other}\noutro\n")
