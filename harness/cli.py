@@ -160,7 +160,7 @@ def bench(args: list[str]) -> int:
     tracker.log_params(parent, provenance_params(cfg, provenance))
     tracking = Tracking(tracker.uri, parent, provenance)
     slots = plan_slots(cfg, len(keyed))
-    start = time.time()
+    start, machine_start = time.time(), _machine_cpu()
     status, children = "FAILED", []
     try:
         print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
@@ -197,7 +197,7 @@ def bench(args: list[str]) -> int:
             print(f"  {r.method} seed {r.seed}: {r.run_dir}/")
         print(f"  MLflow: {tracker.uri} (experiment {cfg.name!r}); `make ui` to browse")
         print(f"[retain] {len(jobs)} jobs in {_duration(time.time() - start)} wall time, "
-              f"{_cpu_text(time.time() - start)}", flush=True)
+              f"{_cpu_text(time.time() - start, machine_start)}", flush=True)
         status = "FINISHED"
         return 0
     except KeyboardInterrupt:
@@ -231,14 +231,30 @@ def _duration(seconds: float) -> str:
     return f"{minutes}m{secs:02d}s" if minutes else f"{secs}s"
 
 
-def _cpu_text(wall: float) -> str:
-    """CPU time of this process and its finished children over wall time: how busy the cores
-    were (a speed-up's other half)."""
+def _cpu_text(wall: float, machine_start: tuple[float, float] | None) -> str:
+    """How busy the cores were, a speed-up's other half: this process's CPU time and its
+    finished children's (local workers; Ray's workers are not its children) over wall time,
+    and the whole machine's busy share over the run (Linux)."""
     usage = os.times()
     cpu = usage.user + usage.system + usage.children_user + usage.children_system
     cores = available_cores()
-    return (f"CPU time {_duration(cpu)}, utilisation {cpu / wall / cores:.0%} of {cores} cores"
-            if wall > 0 else "")
+    text = f"CPU time {_duration(cpu)} ({cpu / max(wall, 1e-9) / cores:.0%} of {cores} cores)"
+    end = _machine_cpu()
+    if machine_start and end and end[1] > machine_start[1]:
+        busy = (end[0] - machine_start[0]) / (end[1] - machine_start[1])
+        text += f", machine busy {busy:.0%}"
+    return text
+
+
+def _machine_cpu() -> tuple[float, float] | None:
+    """(busy, total) jiffies of all cores since boot, from /proc/stat; None elsewhere."""
+    try:
+        with open("/proc/stat") as f:
+            values = [float(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = values[3] + (values[4] if len(values) > 4 else 0.0)  # idle + iowait
+    return sum(values) - idle, sum(values)
 
 
 def _slots_text(cfg: BenchConfig, slots) -> str:

@@ -43,7 +43,7 @@ def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None) -> Slots
     workers are `eval_workers`, or (when 0) its share of the cores."""
     cores = cores or available_cores()
     if cfg.executor == "serial":
-        return Slots(1, cfg.workers())
+        return Slots(1, cfg.eval_workers or cores)
     per_job = max(cfg.torch_threads, cfg.eval_workers or 1)
     parallel = cfg.jobs or max(1, cores // per_job)
     parallel = max(1, min(parallel, n_jobs))
@@ -54,12 +54,12 @@ def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None) -> Slots
 class SerialExecutor:
     """One job after another in this process, sharing one evaluator and the loaded data."""
 
-    def __init__(self, cfg: BenchConfig, suite, data):
+    def __init__(self, cfg: BenchConfig, suite, data, workers: int):
         from harness.evaluation import Evaluator
         from harness.stages import eval_settings
 
         self.data = data
-        self.evaluator = Evaluator(suite, eval_settings(cfg), cfg.workers(), cfg.torch_threads)
+        self.evaluator = Evaluator(suite, eval_settings(cfg), workers, cfg.torch_threads)
 
     def run(self, fn: Callable, jobs: list) -> Iterator[tuple[int, object]]:
         for i, job in enumerate(jobs):
@@ -147,7 +147,7 @@ def make_executor(cfg: BenchConfig, slots: Slots, suite, data):
         return RayExecutor(available_cores(), cfg.jobs)
     if cfg.executor == "local" and slots.parallel > 1:
         return LocalExecutor(slots.parallel)
-    return SerialExecutor(cfg, suite, data)
+    return SerialExecutor(cfg, suite, data, slots.eval_workers)
 
 
 def _source_root() -> str:
