@@ -260,7 +260,8 @@ def _machine_cpu() -> tuple[float, float] | None:
 def _slots_text(cfg: BenchConfig, slots) -> str:
     if cfg.executor == "ray":
         return "Ray tasks" + (f", {cfg.jobs} at once" if cfg.jobs else "")
-    return f"{slots.parallel} at once, {slots.eval_workers} evaluation workers each"
+    each = "evaluation worker" + ("s" if slots.eval_workers != 1 else "")
+    return f"{slots.parallel} at once, {slots.eval_workers} {each} each"
 
 
 def _job_key(variant: Variant, suite, seed: int) -> str:

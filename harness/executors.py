@@ -40,10 +40,13 @@ class Slots:
 def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None) -> Slots:
     """`jobs` at once (0: as many as the cores allow, each job keeping max(torch_threads,
     its evaluation workers) cores busy), never more than there are jobs; a job's evaluation
-    workers are `eval_workers`, or (when 0) its share of the cores."""
+    workers are `eval_workers`, or (when 0) its share of the cores (one on Ray, whose
+    machines the cores of this one say nothing about)."""
     cores = cores or available_cores()
     if cfg.executor == "serial":
         return Slots(1, cfg.eval_workers or cores)
+    if cfg.executor == "ray":  # Ray places the tasks; each asks for what it uses
+        return Slots(min(cfg.jobs or n_jobs, n_jobs), cfg.eval_workers or 1)
     per_job = max(cfg.torch_threads, cfg.eval_workers or 1)
     parallel = cfg.jobs or max(1, cores // per_job)
     parallel = max(1, min(parallel, n_jobs))

@@ -59,7 +59,7 @@ def serial(tmp_path_factory):
 def test_local_processes_match_serial(tmp_path, serial):
     # its own cache: the seeds' foundations are built by the worker processes too
     out = _run(_cmd(tmp_path / "results", tmp_path / "cache", "executor=local", "jobs=2"))
-    assert "2 at once, 1 evaluation workers each" in out
+    assert "2 at once, 1 evaluation worker each" in out
     assert _outputs(tmp_path / "results") == serial[1]
     done = re.findall(r"\[retain\] (\d)/4 (\w+) seed (\d): foundation success .* left\)", out)
     assert sorted((label, int(seed)) for _, label, seed in done) == sorted(RUNS)
@@ -134,6 +134,8 @@ def test_a_setting_given_outside_grid_gets_its_own_run_directory():
     (["executor=local", "jobs=3"], 8, (3, 2)),  # three jobs share the cores for evaluation
     (["executor=local"], 16, (4, 4)),  # never more jobs at once than there are jobs
     (["executor=serial"], 2, (1, 2)),
+    (["executor=ray"], 2, (4, 1)),  # Ray places the tasks, one evaluation worker each
+    (["executor=ray", "jobs=2", "eval_workers=3"], 2, (2, 3)),
 ])
 def test_jobs_at_once_follow_the_cores(args, cores, expected):
     cfg = resolve(["PROFILE=tiny", *args])
