@@ -4,6 +4,7 @@ retried and continues; a killed and rerun comparison leaves one FINISHED MLflow 
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -57,12 +58,15 @@ def serial(tmp_path_factory):
 
 
 def test_local_processes_match_serial(tmp_path, serial):
-    # its own cache: the seeds' foundations are built by the worker processes too
+    # the serial run's demos, not its foundations: the worker processes build those too
+    for part in ("demos", "instructions"):
+        shutil.copytree(serial[0] / "cache" / part, tmp_path / "cache" / part)
     out = _run(_cmd(tmp_path / "results", tmp_path / "cache", "executor=local", "jobs=2"))
     assert "2 at once, 1 evaluation worker each" in out
     assert _outputs(tmp_path / "results") == serial[1]
     done = re.findall(r"\[retain\] (\d)/4 (\w+) seed (\d): foundation success .* left\)", out)
     assert sorted((label, int(seed)) for _, label, seed in done) == sorted(RUNS)
+    assert "foundation ready" in out and len(list((tmp_path / "cache/foundation").iterdir())) == 2
     runs = _runs(tmp_path / "results")
     assert len(runs) == 5 and all(r.info.status == "FINISHED" for r in runs)
 
