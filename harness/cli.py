@@ -116,8 +116,16 @@ def plan(args: list[str]) -> Plan:
             own = {k: v for k, v in params.items() if k in cls.Config.__dataclass_fields__}
             method = make_method(cls, own)
             changed = _changed(run_cfg, base, method, own, point)
-            variants.append(Variant(run_cfg, method, label, name, own, changed))
+            variants.append(Variant(run_cfg, method, label, _portable(name), own, changed))
     return Plan(cfg, variants)
+
+
+def _portable(spec: str) -> str:
+    """`file.py:Class` with an absolute path, so a job in another process finds the file."""
+    module, sep, cls = spec.rpartition(":")
+    if sep and module.endswith(".py"):
+        return f"{os.path.abspath(module)}:{cls}"
+    return spec
 
 
 def _changed(run_cfg: BenchConfig, base: BenchConfig, method: Method, own: dict,
