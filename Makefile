@@ -16,7 +16,8 @@ export PYTHONUNBUFFERED := 1
 OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v))))
 quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
-.PHONY: bench compare sweep report test lint ui venv clean-cache bench-train bench-methods bench-eval
+.PHONY: bench compare sweep report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
+	bench-eval
 
 $(STAMP): requirements.lock pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -65,6 +66,21 @@ lint: $(STAMP)
 
 ui: $(STAMP)
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/results/mlflow.db --host 127.0.0.1 --port 5000
+
+# one tracking server for many processes or machines (SQLite under results/ is for one machine):
+#   make mlflow-server [MLFLOW_HOST=0.0.0.0] [MLFLOW_PORT=5000] [MLFLOW_BACKEND=postgresql://...]
+# then MLFLOW_TRACKING_URI=http://<host>:<port> for every bench; docs/scale-out.md
+MLFLOW_HOST ?= 127.0.0.1
+MLFLOW_PORT ?= 5000
+MLFLOW_SERVER_DIR ?= $(CURDIR)/results/mlflow-server
+MLFLOW_BACKEND ?= sqlite:///$(MLFLOW_SERVER_DIR)/mlflow.db
+mlflow-server: $(STAMP)
+	@mkdir -p $(MLFLOW_SERVER_DIR)
+	@echo "MLflow server on http://$(MLFLOW_HOST):$(MLFLOW_PORT): runs in $(MLFLOW_BACKEND)," \
+		"artifacts in $(MLFLOW_SERVER_DIR)/artifacts"
+	$(VENV)/bin/mlflow server --backend-store-uri '$(MLFLOW_BACKEND)' \
+		--artifacts-destination $(MLFLOW_SERVER_DIR)/artifacts --serve-artifacts \
+		--host $(MLFLOW_HOST) --port $(MLFLOW_PORT)
 
 clean-cache:
 	rm -rf cache

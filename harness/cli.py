@@ -124,8 +124,16 @@ def plan(args: list[str]) -> Plan:
             own = {k: v for k, v in params.items() if k in cls.Config.__dataclass_fields__}
             method = make_method(cls, own)
             changed = _changed(run_cfg, base, method, own, point)
-            variants.append(Variant(run_cfg, method, label, name, own, changed))
+            variants.append(Variant(run_cfg, method, label, _portable(name), own, changed))
     return Plan(cfg, variants)
+
+
+def _portable(spec: str) -> str:
+    """`file.py:Class` with an absolute path, so a job in another process finds the file."""
+    module, sep, cls = spec.rpartition(":")
+    if sep and module.endswith(".py"):
+        return f"{os.path.abspath(module)}:{cls}"
+    return spec
 
 
 def _changed(run_cfg: BenchConfig, base: BenchConfig, method: Method, own: dict,
@@ -168,7 +176,7 @@ def bench(args: list[str]) -> int:
     tracker.log_params(parent, provenance_params(cfg, provenance))
     tracking = Tracking(tracker.uri, parent, provenance)
     slots = plan_slots(cfg, len(keyed))
-    start = time.time()
+    start, machine_start = time.time(), _machine_cpu()
     status, children = "FAILED", []
     try:
         print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
@@ -205,7 +213,7 @@ def bench(args: list[str]) -> int:
             print(f"  {r.method} seed {r.seed}: {r.run_dir}/")
         print(f"  MLflow: {tracker.uri} (experiment {cfg.name!r}); `make ui` to browse")
         print(f"[retain] {len(jobs)} jobs in {_duration(time.time() - start)} wall time, "
-              f"{_cpu_text(time.time() - start)}", flush=True)
+              f"{_cpu_text(time.time() - start, machine_start)}", flush=True)
         status = "FINISHED"
         return 0
     except KeyboardInterrupt:
@@ -239,20 +247,37 @@ def _duration(seconds: float) -> str:
     return f"{minutes}m{secs:02d}s" if minutes else f"{secs}s"
 
 
-def _cpu_text(wall: float) -> str:
-    """CPU time of this process and its finished children over wall time: how busy the cores
-    were (a speed-up's other half)."""
+def _cpu_text(wall: float, machine_start: tuple[float, float] | None) -> str:
+    """How busy the cores were, a speed-up's other half: this process's CPU time and its
+    finished children's (local workers; Ray's workers are not its children) over wall time,
+    and the whole machine's busy share over the run (Linux)."""
     usage = os.times()
     cpu = usage.user + usage.system + usage.children_user + usage.children_system
     cores = available_cores()
-    return (f"CPU time {_duration(cpu)}, utilisation {cpu / wall / cores:.0%} of {cores} cores"
-            if wall > 0 else "")
+    text = f"CPU time {_duration(cpu)} ({cpu / max(wall, 1e-9) / cores:.0%} of {cores} cores)"
+    end = _machine_cpu()
+    if machine_start and end and end[1] > machine_start[1]:
+        busy = (end[0] - machine_start[0]) / (end[1] - machine_start[1])
+        text += f", machine busy {busy:.0%}"
+    return text
+
+
+def _machine_cpu() -> tuple[float, float] | None:
+    """(busy, total) jiffies of all cores since boot, from /proc/stat; None elsewhere."""
+    try:
+        with open("/proc/stat") as f:
+            values = [float(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = values[3] + (values[4] if len(values) > 4 else 0.0)  # idle + iowait
+    return sum(values) - idle, sum(values)
 
 
 def _slots_text(cfg: BenchConfig, slots) -> str:
     if cfg.executor == "ray":
         return "Ray tasks" + (f", {cfg.jobs} at once" if cfg.jobs else "")
-    return f"{slots.parallel} at once, {slots.eval_workers} evaluation workers each"
+    each = "evaluation worker" + ("s" if slots.eval_workers != 1 else "")
+    return f"{slots.parallel} at once, {slots.eval_workers} {each} each"
 
 
 def _job_key(variant: Variant, suite, seed: int) -> str:

@@ -40,10 +40,13 @@ class Slots:
 def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None) -> Slots:
     """`jobs` at once (0: as many as the cores allow, each job keeping max(torch_threads,
     its evaluation workers) cores busy), never more than there are jobs; a job's evaluation
-    workers are `eval_workers`, or (when 0) its share of the cores."""
+    workers are `eval_workers`, or (when 0) its share of the cores (one on Ray, whose
+    machines the cores of this one say nothing about)."""
     cores = cores or available_cores()
     if cfg.executor == "serial":
-        return Slots(1, cfg.workers())
+        return Slots(1, cfg.eval_workers or cores)
+    if cfg.executor == "ray":  # Ray places the tasks; each asks for what it uses
+        return Slots(min(cfg.jobs or n_jobs, n_jobs), cfg.eval_workers or 1)
     per_job = max(cfg.torch_threads, cfg.eval_workers or 1)
     parallel = cfg.jobs or max(1, cores // per_job)
     parallel = max(1, min(parallel, n_jobs))
@@ -54,12 +57,12 @@ def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None) -> Slots
 class SerialExecutor:
     """One job after another in this process, sharing one evaluator and the loaded data."""
 
-    def __init__(self, cfg: BenchConfig, suite, data):
+    def __init__(self, cfg: BenchConfig, suite, data, workers: int):
         from harness.evaluation import Evaluator
         from harness.stages import eval_settings
 
         self.data = data
-        self.evaluator = Evaluator(suite, eval_settings(cfg), cfg.workers(), cfg.torch_threads)
+        self.evaluator = Evaluator(suite, eval_settings(cfg), workers, cfg.torch_threads)
 
     def run(self, fn: Callable, jobs: list) -> Iterator[tuple[int, object]]:
         for i, job in enumerate(jobs):
@@ -147,7 +150,7 @@ def make_executor(cfg: BenchConfig, slots: Slots, suite, data):
         return RayExecutor(available_cores(), cfg.jobs)
     if cfg.executor == "local" and slots.parallel > 1:
         return LocalExecutor(slots.parallel)
-    return SerialExecutor(cfg, suite, data)
+    return SerialExecutor(cfg, suite, data, slots.eval_workers)
 
 
 def _source_root() -> str:

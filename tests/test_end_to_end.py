@@ -19,7 +19,8 @@ def tiny_run(tmp_path_factory):
 
 def test_outputs_on_disk(tiny_run):
     root, _ = tiny_run
-    run = root / "results" / "mw-quick-tiny" / "sft" / "seed0"
+    # learning_curve_every is not the benchmark's: the run's label and directory say so
+    run = root / "results" / "mw-quick-tiny" / "sft[learning_curve_every=5]" / "seed0"
     for name in ("success_matrix.csv", "metrics.json", "config.yaml", "success_matrix.png",
                  "heldout_loss.csv", "updates_per_layer.csv"):
         assert (run / name).stat().st_size > 0, name
@@ -65,7 +66,8 @@ def test_mlflow_has_parent_and_child_runs(tiny_run):
 
 def test_second_run_reuses_demos_foundation_and_stages(tiny_run, monkeypatch):
     root, args = tiny_run
-    before = (root / "results/mw-quick-tiny/sft/seed0/success_matrix.csv").read_text()
+    matrix = root / "results/mw-quick-tiny/sft[learning_curve_every=5]/seed0/success_matrix.csv"
+    before = matrix.read_text()
 
     def fail(*a, **k):
         raise AssertionError("work was redone instead of reused")
@@ -74,12 +76,13 @@ def test_second_run_reuses_demos_foundation_and_stages(tiny_run, monkeypatch):
     monkeypatch.setattr("harness.foundation.train_stage", fail)
     monkeypatch.setattr("harness.runner.train_stage", fail)
     assert main(args) == 0
-    assert (root / "results/mw-quick-tiny/sft/seed0/success_matrix.csv").read_text() == before
+    assert matrix.read_text() == before
     from mlflow.tracking import MlflowClient
 
     client = MlflowClient(tracking_uri=f"sqlite:///{root}/results/mlflow.db")
     runs = client.search_runs([client.get_experiment_by_name("mw-quick-tiny").experiment_id],
                               order_by=["attribute.start_time DESC"])
+    assert len(runs) == 2 and all(r.info.status == "FINISHED" for r in runs)  # continued
     resumed = next(r for r in runs if "mlflow.parentRunId" in r.data.tags)
     history = client.get_metric_history(resumed.info.run_id, "foundation_success")
     assert sorted(m.step for m in history) == [0, 1, 2]  # stages from checkpoints are logged too

@@ -36,7 +36,8 @@ def test_documented_example_runs_by_module_name_and_freezes_the_encoders(tmp_pat
     proc = _bench(tmp_path, "METHOD=my_methods:ExpertOnlySFT", "train_time_encoder=false",
                   env_path=module.parent)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    rows = list(csv.DictReader(open(tmp_path / "results/mw-quick-tiny/expert_only/seed0/updates_per_layer.csv")))
+    run = tmp_path / "results/mw-quick-tiny/expert_only[train_time_encoder=False]/seed0"
+    rows = list(csv.DictReader(open(run / "updates_per_layer.csv")))
     change = {r["layer"]: float(r["relative_l2"]) for r in rows}
     assert change["instruction_proj.weight"] == 0.0 and change["time_encoder.0.weight"] == 0.0
     assert change["blocks.0.mlp.0.weight"] > 0.0
