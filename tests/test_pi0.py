@@ -157,11 +157,12 @@ def test_the_tiny_pi0_trains_end_to_end(tmp_path):
     args = ["bench", "PROFILE=tiny", "METHOD=sft", "policy=pi0", f"results_dir={tmp_path}/results",
             f"cache_dir={tmp_path}/cache", "progress=false", "eval_workers=1"]
     assert main(args) == 0
-    run = json.loads((tmp_path / "results/mw-quick-tiny/sft/seed0/metrics.json").read_text())
+    out = tmp_path / "results/mw-quick-tiny/sft[policy=pi0]/seed0"  # a non-default policy: own dir
+    run = json.loads((out / "metrics.json").read_text())
     assert 0.0 <= run["metrics"]["retention"] <= 1.0
     losses = [s["train_loss"] for s in run["stages"]]
     assert all(np.isfinite(losses)) and len(losses) == 3
-    layers = (tmp_path / "results/mw-quick-tiny/sft/seed0/updates_per_layer.csv").read_text()
+    layers = (out / "updates_per_layer.csv").read_text()
     assert "expert_layers.0.qkv.weight" in layers and "language_proj.weight" in layers
     cfg = resolve(args[1:])  # the cached demos again: their batches carry the token ids
     data = prepare_data(cfg, get_suite(cfg.suite))
@@ -239,5 +240,6 @@ def test_the_documented_policy_runs_a_tiny_benchmark_as_a_user_would(tmp_path):
          f"results_dir={tmp_path}/results", f"cache_dir={tmp_path}/cache", "progress=false",
          "eval_workers=1"], capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    layers = (tmp_path / "results/mw-quick-tiny/sft/seed0/updates_per_layer.csv").read_text()
+    (out,) = (tmp_path / "results/mw-quick-tiny").glob("sft*/seed0")  # labelled by the policy
+    layers = (out / "updates_per_layer.csv").read_text()
     assert "velocity_net.0.weight" in layers
