@@ -297,16 +297,24 @@ class Evaluator:
     def evaluate(self, policy, tasks: list[str], instructions: dict[str, np.ndarray],
                  noise_seed: int) -> dict[str, TaskEvaluation]:
         episodes = evaluation_episodes(self.suite.name, tasks, self.settings.episodes)
-        on_accelerator = policy_device(policy).type != "cpu"
-        central = on_accelerator if self.central_policy is None else self.central_policy
-        if self._local is not None:
+        layout = self.layout(policy)
+        if layout == "in-process":
             outcomes = rollout(policy, episodes, instructions, self.settings, noise_seed,
-                               self._local, align_chunks=on_accelerator)
-        elif central:
+                               self._local, align_chunks=policy_device(policy).type != "cpu")
+        elif layout == "central":
             outcomes = self._central_rollout(policy, episodes, instructions, noise_seed)
         else:
             outcomes = self._per_worker_rollout(policy, episodes, instructions, noise_seed)
         return group_by_task(episodes, outcomes)
+
+    def layout(self, policy) -> str:
+        """Where `policy` would be rolled out: "in-process", "per-worker" or "central"."""
+        if self._local is not None:
+            return "in-process"
+        central = self.central_policy
+        if central is None:
+            central = policy_device(policy).type != "cpu"
+        return "central" if central else "per-worker"
 
     def _central_rollout(self, policy, episodes, instructions, noise_seed) -> list[tuple[bool, int]]:
         if self._env_workers is None:
