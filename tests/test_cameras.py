@@ -8,6 +8,7 @@ import torch
 
 from harness.config import BenchConfig
 from harness.data import prepare_data
+from harness.demos import read_demo_file
 from harness.foundation import build_policy
 from suites import get_suite
 from suites.base import CAMERA_KEYS
@@ -59,6 +60,10 @@ def test_images_flow_from_the_simulator_to_the_demo_file_the_batch_and_the_polic
         for key in CAMERA_KEYS:  # LIBERO's layout: data/demo_<i>/obs/agentview_rgb
             assert demo[f"obs/{key}"].dtype == np.uint8
             assert demo[f"obs/{key}"].shape == (steps, SIZE, SIZE, 3)
+            assert demo[f"obs/{key}"].compression == "gzip"
+    [episode] = read_demo_file(path)[1]  # lossless: the file holds what training used
+    for key in CAMERA_KEYS:
+        assert np.array_equal(episode.obs[key], data.train["reach-v3"].obs[key][:steps].numpy())
     batch = data.train["reach-v3"].batch(torch.arange(5))
     for key in CAMERA_KEYS:
         assert batch[key].dtype == torch.uint8 and batch[key].shape == (5, SIZE, SIZE, 3)
