@@ -164,10 +164,9 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
             break
         need = [s for s in running if s.t % n_steps == 0]
         if need:
-            batch = {k: torch.as_tensor(np.stack([s.obs[k] for s in need])).to(device)
-                     for k in need[0].obs}
-            batch["instruction"] = torch.as_tensor(
-                np.stack([instructions[s.task] for s in need])).to(device)
+            batch = {k: torch.as_tensor(np.stack([s.obs[k] for s in need])) for k in need[0].obs}
+            batch["instruction"] = torch.as_tensor(np.stack([instructions[s.task] for s in need]))
+            batch = {k: v.to(device) for k, v in batch.items()}
             noise = torch.stack([torch.randn(chunk_shape, generator=s.noise) for s in need])
             chunks = policy.sample_actions(batch, noise=noise.to(device))
             for s, chunk in zip(need, chunks.float().cpu().numpy()):
