@@ -168,7 +168,7 @@ def _raw_expert_share(suite_name: str, episodes, max_steps: int, cameras: bool =
 
 
 def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, cameras: bool = False,
-               image_size: int = 84, device: str = "cpu") -> None:
+               image_size: int = 84, device: str = "cpu", central_policy: bool | None = None) -> None:
     """Evaluation env steps/s against raw expert stepping (with the same rendering: raw
     step-plus-render throughput when cameras are on); 1 -> 2 worker speed-up. A policy on an
     accelerator is evaluated with one central policy and simulators in the workers."""
@@ -195,7 +195,7 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, camer
     instructions = {t: torch.randn(384).numpy() for t in mw_quick_tasks}
     rates, layouts = {}, {}
     for n in (1, workers):
-        with Evaluator(suite, settings, workers=n) as evaluator:
+        with Evaluator(suite, settings, workers=n, central_policy=central_policy) as evaluator:
             layouts[n] = evaluator.layout(policy)
             evaluator.evaluate(policy, mw_quick_tasks, instructions, noise_seed=0)  # warm
             start = time.perf_counter()
@@ -240,6 +240,9 @@ def _eval_args(argv: list[str]):
     parser.add_argument("--episodes", type=int, default=10, help="per task")
     parser.add_argument("--max-steps", type=int, default=200)
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    parser.add_argument("--layout", choices=("auto", "per-worker", "central"), default="auto",
+                        help="with workers: per-worker policies or one central policy "
+                             "(auto: central for a policy on an accelerator)")
     return parser.parse_args(argv)
 
 
@@ -253,13 +256,14 @@ def main(argv: list[str]) -> int:
         bench_methods()
     elif what == "eval":
         args = _eval_args(argv[1:])
+        central = {"auto": None, "per-worker": False, "central": True}[args.layout]
         bench_eval(args.workers, args.episodes, args.max_steps, args.cameras, args.image_size,
-                   args.device)
+                   args.device, central)
     elif what == "_memory":
         print(json.dumps(_method_memory(argv[1], steps=30)))
     else:
         print("usage: python -m harness.perf {train,methods,eval [workers] [--cameras] "
-              "[--image-size N] [--episodes N] [--max-steps N] [--device D]}", file=sys.stderr)
+              "[--image-size N] [--episodes N] [--max-steps N] [--device D] [--layout L]}", file=sys.stderr)
         return 2
     return 0
 
