@@ -147,8 +147,8 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
             queue = queues[slot.task]
             slot.episode = queue.popleft() if queue else None
         starting = [s for s in waiting if s.episode is not None]
-        seeds = [episodes[s.episode].seed for s in starting]
-        for slot, obs in zip(starting, sims.reset([(s.index, seed) for s, seed in zip(starting, seeds)])):
+        observations = sims.reset([(s.index, episodes[s.episode].seed) for s in starting])
+        for slot, obs in zip(starting, observations):
             ep = episodes[slot.episode]
             slot.t, slot.obs = 0, obs
             slot.noise = generator("eval-noise", noise_seed, ep.task, ep.seed)
