@@ -21,7 +21,6 @@ With several worker processes there are two layouts, chosen by where the policy 
 
 from __future__ import annotations
 
-import atexit
 import os
 from collections import Counter, deque
 from concurrent.futures import ProcessPoolExecutor
@@ -231,7 +230,12 @@ class EnvWorkers:
             self._conns[w].send((method, items))
         replies = {}
         for w in per_worker:
-            ok, payload = self._conns[w].recv()
+            try:
+                ok, payload = self._conns[w].recv()
+            except EOFError:
+                self._procs[w].join(timeout=5)
+                raise RuntimeError(f"evaluation worker {w} died in {method} "
+                                   f"(exit code {self._procs[w].exitcode})") from None
             if not ok:
                 raise RuntimeError(f"evaluation worker {w} failed in {method}: {payload}")
             replies[w] = payload
@@ -363,7 +367,6 @@ def _init_worker(suite_name: str, settings: EvalSettings, torch_threads: int) ->
     torch.set_num_threads(torch_threads)
     _WORKER["envs"] = EnvCache(get_suite(suite_name), settings)
     _WORKER["settings"] = settings
-    atexit.register(_WORKER["envs"].close)  # renderers freed before EGL is torn down
 
 
 def _worker_rollout(config, weights, episodes, instructions, noise_seed):
@@ -380,21 +383,24 @@ def _env_worker(conn, suite_name: str, settings: EvalSettings, torch_threads: in
     """An `EnvWorkers` process: open slots, reset and step them, until told to close."""
     _init_worker(suite_name, settings, torch_threads)
     sims = None
-    while True:
-        try:
-            method, items = conn.recv()
-        except EOFError:  # the evaluator's process is gone
-            return
-        if method == "close":
-            return
-        try:
-            if method == "open":
-                sims, reply = LocalSimulators(_WORKER["envs"], items), None
-            else:
-                reply = getattr(sims, method)(items)
-            conn.send((True, reply))
-        except Exception as exc:  # reported to the evaluator, which raises it there
-            conn.send((False, f"{type(exc).__name__}: {exc}"))
+    try:
+        while True:
+            try:
+                method, items = conn.recv()
+            except EOFError:  # the evaluator's process is gone
+                return
+            if method == "close":
+                return
+            try:
+                if method == "open":
+                    sims, reply = LocalSimulators(_WORKER["envs"], items), None
+                else:
+                    reply = getattr(sims, method)(items)
+                conn.send((True, reply))
+            except Exception as exc:  # reported to the evaluator, which raises it there
+                conn.send((False, f"{type(exc).__name__}: {exc}"))
+    finally:
+        _WORKER["envs"].close()  # renderers go before EGL itself is torn down at exit
 
 
 @torch.no_grad()

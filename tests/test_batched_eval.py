@@ -5,6 +5,7 @@ number of policy calls."""
 from dataclasses import replace
 from types import SimpleNamespace
 
+import pytest
 import torch
 
 from harness.evaluation import (
@@ -85,3 +86,9 @@ def test_the_layout_follows_the_policy_device():
     assert Evaluator(suite, SETTINGS, workers=1).layout(policy) == "in-process"
     assert Evaluator(suite, SETTINGS, workers=2).layout(policy) == "per-worker"  # CPU: as before
     assert Evaluator(suite, SETTINGS, workers=2).layout(policy.to("meta")) == "central"
+
+
+def test_a_worker_error_is_raised_in_the_evaluator_naming_its_cause():
+    with Evaluator(get_suite("metaworld"), SETTINGS, workers=2, central_policy=True) as evaluator:
+        with pytest.raises(RuntimeError, match="unknown metaworld task 'no-such-task'"):
+            evaluator.evaluate(ReachController(), ["no-such-task"], {"no-such-task": None}, 0)
