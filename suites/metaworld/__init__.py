@@ -52,7 +52,7 @@ class MetaWorldEnv(TaskEnv):
 
             model = self._env.model
             # Meta-World's 4096^2 shadow map costs more than the image itself at these sizes
-            # (4x on a CPU); 1024^2 gives the same shadows to an image of a few hundred pixels
+            # (twice the render time on a CPU); 1024^2 gives the same shadows at a few hundred pixels
             model.vis.quality.shadowsize = min(model.vis.quality.shadowsize, _SHADOW_MAP_SIZE)
             self._renderer = mujoco.Renderer(model, image_size, image_size)
 
