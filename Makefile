@@ -55,8 +55,11 @@ bench-train: $(STAMP)
 bench-methods: $(STAMP)
 	$(PY) -m harness.perf methods
 
+# make bench-eval [WORKERS=2] [cameras=true image_size=128] [device=cuda]
 bench-eval: $(STAMP)
-	$(PY) -m harness.perf eval $(or $(WORKERS),2)
+	$(PY) -m harness.perf eval $(or $(WORKERS),2) \
+		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
+		$(if $(device),--device $(device))
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings tests

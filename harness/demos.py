@@ -2,7 +2,8 @@
 
     data/                     attrs: instruction, task, suite, cache_key, settings (JSON), total
     data/demo_<i>/actions     [T, A] float32
-    data/demo_<i>/obs/<key>   [T, ...] (state: [T, S] float32; images: [T, H, W, 3] uint8)
+    data/demo_<i>/obs/<key>   [T, ...] (state: [T, S] float32; images: [T, H, W, 3] uint8 under
+                              LIBERO's names, agentview_rgb and eye_in_hand_rgb, gzip-compressed)
     data/demo_<i>/rewards     [T] float32, 1 at the step that succeeded
     data/demo_<i>/dones       [T] uint8, 1 at the last step
                               attrs: seed, num_samples
@@ -127,13 +128,21 @@ def write_demo_file(path: Path, episodes: list[Episode], spec: DemoSpec, instruc
                 demo.attrs.update(seed=episode.seed, num_samples=len(episode))
                 demo.create_dataset("actions", data=episode.actions)
                 for key, value in episode.obs.items():
-                    demo.create_dataset(f"obs/{key}", data=value)
+                    demo.create_dataset(f"obs/{key}", data=value, **_storage(value))
                 for key, value in episode.extras.items():
                     demo.create_dataset(key, data=value)
                 rewards = np.zeros(len(episode), np.float32)
                 rewards[-1] = 1.0
                 demo.create_dataset("rewards", data=rewards)
                 demo.create_dataset("dones", data=(rewards > 0).astype(np.uint8))
+
+
+def _storage(value: np.ndarray) -> dict:
+    """Images ([T, H, W, 3] uint8) are stored gzip-compressed, one chunk per frame: rendered
+    scenes shrink several times, and gzip is in every HDF5 build (LIBERO's readers included)."""
+    if value.dtype == np.uint8 and value.ndim == 4:
+        return dict(compression="gzip", compression_opts=1, chunks=(1, *value.shape[1:]))
+    return {}
 
 
 def read_demo_file(path: Path, expected: DemoSpec | None = None) -> tuple[str, list[Episode]]:

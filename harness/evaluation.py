@@ -21,7 +21,6 @@ With several worker processes there are two layouts, chosen by where the policy 
 
 from __future__ import annotations
 
-import atexit
 import os
 from collections import Counter, deque
 from concurrent.futures import ProcessPoolExecutor
@@ -149,8 +148,8 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
             queue = queues[slot.task]
             slot.episode = queue.popleft() if queue else None
         starting = [s for s in waiting if s.episode is not None]
-        seeds = [episodes[s.episode].seed for s in starting]
-        for slot, obs in zip(starting, sims.reset([(s.index, seed) for s, seed in zip(starting, seeds)])):
+        observations = sims.reset([(s.index, episodes[s.episode].seed) for s in starting])
+        for slot, obs in zip(starting, observations):
             ep = episodes[slot.episode]
             slot.t, slot.obs = 0, obs
             slot.noise = generator("eval-noise", noise_seed, ep.task, ep.seed)
@@ -236,7 +235,12 @@ class EnvWorkers:
             self._conns[w].send((method, items))
         replies = {}
         for w in per_worker:
-            ok, payload = self._conns[w].recv()
+            try:
+                ok, payload = self._conns[w].recv()
+            except EOFError:
+                self._procs[w].join(timeout=5)
+                raise RuntimeError(f"evaluation worker {w} died in {method} "
+                                   f"(exit code {self._procs[w].exitcode})") from None
             if not ok:
                 raise RuntimeError(f"evaluation worker {w} failed in {method}: {payload}")
             replies[w] = payload
@@ -302,16 +306,24 @@ class Evaluator:
                  noise_seed: int) -> dict[str, TaskEvaluation]:
         episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes,
                                        self.settings.max_episode_steps)
-        on_accelerator = policy_device(policy).type != "cpu"
-        central = on_accelerator if self.central_policy is None else self.central_policy
-        if self._local is not None:
+        layout = self.layout(policy)
+        if layout == "in-process":
             outcomes = rollout(policy, episodes, instructions, self.settings, noise_seed,
-                               self._local, align_chunks=on_accelerator)
-        elif central:
+                               self._local, align_chunks=policy_device(policy).type != "cpu")
+        elif layout == "central":
             outcomes = self._central_rollout(policy, episodes, instructions, noise_seed)
         else:
             outcomes = self._per_worker_rollout(policy, episodes, instructions, noise_seed)
         return group_by_task(episodes, outcomes)
+
+    def layout(self, policy) -> str:
+        """Where `policy` would be rolled out: "in-process", "per-worker" or "central"."""
+        if self._local is not None:
+            return "in-process"
+        central = self.central_policy
+        if central is None:
+            central = policy_device(policy).type != "cpu"
+        return "central" if central else "per-worker"
 
     def _central_rollout(self, policy, episodes, instructions, noise_seed) -> list[tuple[bool, int]]:
         if self._env_workers is None:
@@ -361,7 +373,6 @@ def _init_worker(suite_name: str, settings: EvalSettings, torch_threads: int) ->
     torch.set_num_threads(torch_threads)
     _WORKER["envs"] = EnvCache(get_suite(suite_name), settings)
     _WORKER["settings"] = settings
-    atexit.register(_WORKER["envs"].close)  # renderers freed before EGL is torn down
 
 
 def _worker_rollout(config, weights, episodes, instructions, noise_seed):
@@ -378,21 +389,24 @@ def _env_worker(conn, suite_name: str, settings: EvalSettings, torch_threads: in
     """An `EnvWorkers` process: open slots, reset and step them, until told to close."""
     _init_worker(suite_name, settings, torch_threads)
     sims = None
-    while True:
-        try:
-            method, items = conn.recv()
-        except EOFError:  # the evaluator's process is gone
-            return
-        if method == "close":
-            return
-        try:
-            if method == "open":
-                sims, reply = LocalSimulators(_WORKER["envs"], items), None
-            else:
-                reply = getattr(sims, method)(items)
-            conn.send((True, reply))
-        except Exception as exc:  # reported to the evaluator, which raises it there
-            conn.send((False, f"{type(exc).__name__}: {exc}"))
+    try:
+        while True:
+            try:
+                method, items = conn.recv()
+            except EOFError:  # the evaluator's process is gone
+                return
+            if method == "close":
+                return
+            try:
+                if method == "open":
+                    sims, reply = LocalSimulators(_WORKER["envs"], items), None
+                else:
+                    reply = getattr(sims, method)(items)
+                conn.send((True, reply))
+            except Exception as exc:  # reported to the evaluator, which raises it there
+                conn.send((False, f"{type(exc).__name__}: {exc}"))
+    finally:
+        _WORKER["envs"].close()  # renderers go before EGL itself is torn down at exit
 
 
 @torch.no_grad()

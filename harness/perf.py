@@ -233,57 +233,90 @@ def bench_methods(rounds: int = 15, steps: int = 20) -> None:
     print("target: consft within 1.05x of sft in time, and no parameter-sized state")
 
 
-_RAW_ENVS: dict[str, EnvCache] = {}  # per worker process, kept between calls like the evaluator's
+_RAW_ENVS: dict[tuple, EnvCache] = {}  # per worker process, kept between calls like the evaluator's
 
 
-def _raw_expert_share(suite_name: str, episodes, max_steps: int) -> int:
+def _raw_expert_share(suite_name: str, episodes, max_steps: int, cameras: bool = False,
+                      image_size: int = 84) -> int:
     from suites import get_suite
 
-    if suite_name not in _RAW_ENVS:
-        _RAW_ENVS[suite_name] = EnvCache(get_suite(suite_name),
-                                         EvalSettings(len(episodes), max_steps, n_action_steps=1))
-    envs = _RAW_ENVS[suite_name]
+    key = (suite_name, cameras, image_size)
+    if key not in _RAW_ENVS:
+        _RAW_ENVS[key] = EnvCache(get_suite(suite_name), EvalSettings(
+            len(episodes), max_steps, n_action_steps=1, cameras=cameras, image_size=image_size))
+    envs = _RAW_ENVS[key]
     return sum(run_expert_episode(envs.for_task(ep.task, 1)[0], ep.seed, max_steps).steps
                for ep in episodes)
 
 
-def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200) -> None:
-    """Evaluation env steps/s against raw expert stepping; 1 -> 2 worker speed-up."""
+def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, cameras: bool = False,
+               image_size: int = 84, device: str = "cpu", central_policy: bool | None = None) -> None:
+    """Evaluation env steps/s against raw expert stepping (with the same rendering: raw
+    step-plus-render throughput when cameras are on); 1 -> 2 worker speed-up. A policy on an
+    accelerator is evaluated with one central policy and simulators in the workers."""
     from suites import get_suite
+    from suites.base import CAMERA_KEYS
 
     suite = get_suite("metaworld")
     benchmark = load_benchmark("mw-quick")
     mw_quick_tasks = benchmark.foundation_tasks + benchmark.stream_tasks
     eps = evaluation_episodes(suite, mw_quick_tasks, episodes, max_steps)
-    settings = EvalSettings(episodes, max_steps, n_action_steps=4)
+    settings = EvalSettings(episodes, max_steps, n_action_steps=4, cameras=cameras,
+                            image_size=image_size)
     ctx = get_context("spawn")
+    render = [cameras] * workers, [image_size] * workers
     with ProcessPoolExecutor(workers, mp_context=ctx) as pool:  # warm: imports and env builds
         shares = [eps[i::workers] for i in range(workers)]
-        list(pool.map(_raw_expert_share, ["metaworld"] * workers, shares, [1] * workers))
+        list(pool.map(_raw_expert_share, ["metaworld"] * workers, shares, [1] * workers, *render))
         start = time.perf_counter()
         raw_steps = sum(pool.map(_raw_expert_share, ["metaworld"] * workers, shares,
-                                 [max_steps] * workers))
+                                 [max_steps] * workers, *render))
         raw_time = time.perf_counter() - start
-    policy = _policy("default")
+    image_keys = CAMERA_KEYS if cameras else ()
+    policy = _policy("default", image_keys=image_keys, image_size=image_size).to(resolve_device(device))
     instructions = {t: torch.randn(384).numpy() for t in mw_quick_tasks}
-    rates = {}
+    rates, layouts = {}, {}
     for n in (1, workers):
-        with Evaluator(suite, settings, workers=n) as evaluator:
+        with Evaluator(suite, settings, workers=n, central_policy=central_policy) as evaluator:
+            layouts[n] = evaluator.layout(policy)
             evaluator.evaluate(policy, mw_quick_tasks, instructions, noise_seed=0)  # warm
             start = time.perf_counter()
             results = evaluator.evaluate(policy, mw_quick_tasks, instructions, noise_seed=0)
             elapsed = time.perf_counter() - start
         rates[n] = (sum(r.steps for r in results.values()) / elapsed, elapsed)
     raw_rate = raw_steps / raw_time
-    print(f"evaluation on mw-quick's 9 tasks x {episodes} episodes, <= {max_steps} steps "
-          f"(untrained default policy, so episodes run long)")
-    print("| what | processes | env steps/s | wall s |")
-    print("|---|---|---|---|")
-    print(f"| raw simulator + scripted experts | {workers} | {raw_rate:,.0f} | {raw_time:.1f} |")
+    images = f"two {image_size}x{image_size} cameras" if cameras else "no cameras"
+    print(f"evaluation on mw-quick's 9 tasks x {episodes} episodes, <= {max_steps} steps, {images} "
+          f"(untrained default policy on {policy_device_name(policy)}, so episodes run long)")
+    print("| what | processes | layout | env steps/s | wall s |")
+    print("|---|---|---|---|---|")
+    raw_what = "raw simulator + render + scripted experts" if cameras else \
+        "raw simulator + scripted experts"
+    print(f"| {raw_what} | {workers} | - | {raw_rate:,.0f} | {raw_time:.1f} |")
     for n, (rate, elapsed) in rates.items():
-        print(f"| policy evaluation | {n} | {rate:,.0f} | {elapsed:.1f} |")
+        print(f"| policy evaluation | {n} | {layouts[n]} | {rate:,.0f} | {elapsed:.1f} |")
     print(f"evaluation / raw with {workers} processes: {rates[workers][0] / raw_rate:.2f} (target >= 0.8)")
     print(f"speed-up 1 -> {workers} workers: {rates[1][1] / rates[workers][1]:.2f}x (target >= 1.6x)")
+
+
+def policy_device_name(policy) -> str:
+    return str(next(policy.parameters()).device)
+
+
+def _eval_args(argv: list[str]):
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m harness.perf eval")
+    parser.add_argument("workers", nargs="?", type=int, default=2)
+    parser.add_argument("--cameras", action="store_true", help="render and feed both cameras")
+    parser.add_argument("--image-size", type=int, default=128)
+    parser.add_argument("--episodes", type=int, default=10, help="per task")
+    parser.add_argument("--max-steps", type=int, default=200)
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    parser.add_argument("--layout", choices=("auto", "per-worker", "central"), default="auto",
+                        help="with workers: per-worker policies or one central policy "
+                             "(auto: central for a policy on an accelerator)")
+    return parser.parse_args(argv)
 
 
 def main(argv: list[str]) -> int:
@@ -306,12 +339,16 @@ def main(argv: list[str]) -> int:
     elif what == "methods":
         bench_methods()
     elif what == "eval":
-        bench_eval(workers=int(argv[1]) if len(argv) > 1 else 2)
+        args = _eval_args(argv[1:])
+        central = {"auto": None, "per-worker": False, "central": True}[args.layout]
+        bench_eval(args.workers, args.episodes, args.max_steps, args.cameras, args.image_size,
+                   args.device, central)
     elif what == "_memory":
         print(json.dumps(_method_memory(argv[1], steps=30)))
     else:
-        print("usage: python -m harness.perf {train [device=cuda compile=true],methods,"
-              "eval [workers]}", file=sys.stderr)
+        print("usage: python -m harness.perf {train [device=cuda compile=true],methods,eval "
+              "[workers] [--cameras] [--image-size N] [--episodes N] [--max-steps N] [--device D] "
+              "[--layout L]}", file=sys.stderr)
         return 2
     return 0
 
