@@ -298,10 +298,10 @@ def tiny_comparison(tmp_path_factory):
 def test_tiny_end_to_end_for_merge_distill_mas(tiny_comparison):
     import json
 
-    for name in ("merge", "distill", "mas"):
+    for name in ("merge[alpha=0.0]", "distill", "mas"):  # alpha away from its default: labelled
         metrics = json.loads((tiny_comparison / name / "seed0" / "metrics.json").read_text())
         assert metrics["metrics"]["plasticity"] >= 0, name
-    merge = json.loads((tiny_comparison / "merge" / "seed0" / "metrics.json").read_text())
+    merge = json.loads((tiny_comparison / "merge[alpha=0.0]" / "seed0" / "metrics.json").read_text())
     # at alpha = 0 every stage ends on the foundation's weights: nothing moved, nothing lost
     assert merge["metrics"]["update_relative_l2"] == 0.0
     assert merge["metrics"]["offline_retention"] == 1.0
