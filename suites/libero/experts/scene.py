@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-GRIPPER_DOWN = np.diag([1.0, -1.0, -1.0])  # the Panda's hand pointing down, fingers along world y
+# The eef site's frame with the hand pointing down and the fingers closing along world y
+GRIPPER_DOWN = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 
 def _descendants(model, root: int) -> set[int]:
@@ -39,6 +40,12 @@ class Scene:
     def is_grasped(self, name: str) -> bool:
         robot = self.env.robots[0]
         return bool(self.env._check_grasp(robot.gripper["right"], self.thing(name)))
+
+    def fingers_still(self) -> bool:
+        """The gripper fingers have stopped moving (closed on something, or fully)."""
+        robot = self.env.robots[0]
+        qvel = self.sim.data.qvel[robot._ref_gripper_joint_vel_indexes["right"]]
+        return bool(np.abs(qvel).max() < 0.005)
 
     # -- objects, fixtures and sites -------------------------------------------------------
     def thing(self, name: str):

@@ -32,6 +32,7 @@ class Phase:
     done: Callable[[], bool] | None = None
     speed: float = 1.0  # action-norm cap for the translation
     limit: int = MAX_PHASE_STEPS
+    stall: bool = False  # a move that stops making progress (blocked by contact) counts as done
 
 
 def _wrap_half_turn(yaw: float) -> float:
@@ -56,7 +57,7 @@ class Grasp:
         height = hi[2] - lo[2]
         grip_z = max(lo[2] + min(0.012, height / 2), hi[2] - FINGER_REACH)
         # Fingers close along the hand's y axis; at yaw 0 that is world y.
-        if narrow <= GRIPPER_SPAN and wide > 1.15 * narrow:
+        if narrow <= GRIPPER_SPAN and wide > 0.06 and wide > 1.15 * narrow:
             yaw = _wrap_half_turn(narrow_yaw - np.pi / 2)
         else:
             yaw = 0.0
@@ -82,8 +83,8 @@ def pick(scene: Scene, obj: str, grasp: Grasp, travel_z: float) -> list[Phase]:
     above = min(travel_z, grip_point()[2] + 0.12)
     return [
         Phase("above", _at(grip_point, max(above, grip_point()[2] + 0.06)), OPEN, yaw, tol=0.015),
-        Phase("descend", grip_point, OPEN, yaw, tol=0.008, speed=0.6),
-        Phase("close", lambda: scene.eef_pos(), CLOSED, yaw, steps=12),
+        Phase("descend", grip_point, OPEN, yaw, tol=0.006, speed=0.6, stall=True),
+        Phase("close", lambda: scene.eef_pos(), CLOSED, yaw, steps=20, done=scene.fingers_still),
         Phase("lift", _at(scene.eef_pos, travel_z), CLOSED, yaw, carrying=obj, tol=0.02,
               speed=0.7),
     ]
@@ -103,7 +104,8 @@ def place(scene: Scene, obj: str, grasp: Grasp, target_xy: Callable[[], np.ndarr
               speed=0.8, limit=80),
         Phase("lower", _at(hand_xy_obj, release_z), CLOSED, yaw, carrying=obj, tol=0.01,
               speed=0.5),
-        Phase("release", lambda: scene.eef_pos(), OPEN, yaw, steps=8),
+        Phase("release", lambda: scene.eef_pos(), OPEN, yaw, steps=25,
+              done=lambda: scene.fingers_still() and not scene.is_grasped(obj)),
         Phase("retreat", lambda: np.array([*scene.eef_pos()[:2], travel_z]), OPEN, yaw,
               tol=0.02),
     ]
