@@ -98,13 +98,18 @@ class Scene:
         return pts.min(0), pts.max(0)
 
     def footprint(self, name: str) -> tuple[float, float, float]:
-        """(narrow width, long width, yaw of the narrow axis) of the object's box in its frame."""
-        rot = self.mat(name)
-        local = (self._corners(name) - self.pos(name)) @ rot
-        ext = local.max(0) - local.min(0)
-        narrow = 0 if ext[0] <= ext[1] else 1
-        axis = rot[:, narrow]
-        return float(ext[narrow]), float(ext[1 - narrow]), float(np.arctan2(axis[1], axis[0]))
+        """(narrow width, long width, yaw of the narrow direction) of the object seen from above.
+
+        Found by sweeping directions in the plane, so it holds however the model's body frame
+        is oriented (some LIBERO objects are modelled lying down and stood up by their pose).
+        """
+        pts = self._corners(name)[:, :2]
+        yaws = np.linspace(0.0, np.pi, 36, endpoint=False)
+        dirs = np.stack([np.cos(yaws), np.sin(yaws)], 1)
+        proj = pts @ dirs.T
+        widths = proj.max(0) - proj.min(0)
+        k = int(widths.argmin())
+        return float(widths[k]), float(widths.max()), float(yaws[k])
 
     def joint_qpos(self, name: str) -> float:
         """The first joint of an articulated object (or of a site's joints)."""

@@ -16,7 +16,7 @@ from suites.libero.experts.scene import Scene
 
 OPEN, CLOSED = -1.0, 1.0
 MAX_PHASE_STEPS = 60
-FINGER_REACH = 0.035  # grip point below an object's top for tall things (finger pad length)
+FINGER_REACH = 0.027  # the palm sits about 3 cm above the grip point: grip no deeper
 GRIPPER_SPAN = 0.075  # widest thing the open hand takes in across its fingers
 
 
@@ -36,8 +36,8 @@ class Phase:
 
 
 def _wrap_half_turn(yaw: float) -> float:
-    """The hand is symmetric under a half turn: take the equivalent yaw in [-pi/2, pi/2)."""
-    return (yaw + np.pi / 2) % np.pi - np.pi / 2
+    """The hand is symmetric under a half turn: take the equivalent yaw in (-pi/2, pi/2]."""
+    return np.pi / 2 - (np.pi / 2 - yaw) % np.pi
 
 
 @dataclass
