@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 from robosuite.utils.control_utils import orientation_error
 
+from suites.libero.experts.planner import plan_goal
 from suites.libero.experts.scene import GRIPPER_DOWN, Scene
 from suites.libero.experts.skills import OPEN, Phase
-from suites.libero.experts.planner import plan_goal
 
 POS_SCALE, ROT_SCALE = 0.05, 0.5  # LIBERO's OSC_POSE: metres and radians per unit action
 SLIP_STEPS = 3  # steps without a grasp before a carry counts as dropped

@@ -11,8 +11,13 @@ import argparse
 import time
 
 from suites.libero.experts import make_expert
-from suites.libero.experts.libero_env import (STEP_LIMITS, SUITES, make_env, start_episode,
-                                              suite_tasks)
+from suites.libero.experts.libero_env import (
+    STEP_LIMITS,
+    SUITES,
+    make_env,
+    start_episode,
+    suite_tasks,
+)
 
 
 def run_episode(env, task, state: int, limit: int) -> tuple[bool, int]:
@@ -36,7 +41,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.tasks:
         tasks = [tasks[int(i)] for i in args.tasks.split(",")]
     limit = STEP_LIMITS[args.suite]
-    print(f"| task | success | mean steps |\n|---|---|---|", flush=True)
+    print("| task | success | mean steps |\n|---|---|---|", flush=True)
     start, total = time.time(), [0, 0]
     for task in tasks:
         env = make_env(task)
