@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from suites.libero.experts.scene import Scene
-from suites.libero.experts.skills import Grasp, Phase, pick, place
+from suites.libero.experts.skills import Grasp, Phase, pick, place, turn
 
 CARRY_CLEARANCE = 0.07  # the carried object's bottom above the higher of start and goal surface
 RELEASE_GAP = 0.012  # the object's bottom above its resting surface when the hand opens
@@ -30,9 +30,13 @@ def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
         travel = max(bottom, rest_z()) + CARRY_CLEARANCE + grasp.below
         travel = max(travel, scene.eef_pos()[2] - 0.05)
         return pick(scene, obj, grasp, travel) + place(scene, obj, grasp, xy, rest_z, travel)
+    if relation in ("turnon", "turnoff"):
+        # LIBERO's stoves: on is a positive knob angle, off is back to zero.
+        return turn(scene, scene.joint_name(goal[1]), 1.0 if relation == "turnon" else -1.0,
+                    lambda: scene.check(goal))
     raise KeyError(f"no skill for goal predicate {goal!r}")
 
 
 def supported(goal: list[str]) -> bool:
-    return goal[0] in ("in", "on")
+    return goal[0] in ("in", "on", "turnon", "turnoff")
 

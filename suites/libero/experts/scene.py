@@ -120,3 +120,26 @@ class Scene:
     def check(self, predicate: list[str]) -> bool:
         """One BDDL goal predicate, evaluated the way LIBERO's success check does."""
         return bool(self.env._eval_predicate(predicate))
+
+    # -- articulated parts -----------------------------------------------------------------
+    def joint_name(self, name: str) -> str:
+        joints = (self.env.object_sites_dict[name].joints if self.is_site(name)
+                  else self.thing(name).joints)
+        return joints[0]
+
+    def joint(self, joint: str) -> tuple[np.ndarray, np.ndarray, float]:
+        """(world axis, world anchor, position) of a joint."""
+        j = self.model.joint(joint).id
+        return (np.array(self.data.xaxis[j]), np.array(self.data.xanchor[j]),
+                float(self.data.qpos[self.model.jnt_qposadr[j]]))
+
+    def lever(self, joint: str) -> np.ndarray:
+        """A point to push a knob by: its highest parts' geom furthest from the hinge axis."""
+        m = self.model
+        body = m.jnt_bodyid[m.joint(joint).id]
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        pos = np.array(self.data.geom_xpos[geoms])
+        top = pos[pos[:, 2] > pos[:, 2].max() - 0.015]
+        _, anchor, _ = self.joint(joint)
+        return top[int(np.argmax(np.linalg.norm(top[:, :2] - anchor[:2], axis=1)))]

@@ -109,3 +109,25 @@ def place(scene: Scene, obj: str, grasp: Grasp, target_xy: Callable[[], np.ndarr
         Phase("retreat", lambda: np.array([*scene.eef_pos()[:2], travel_z]), OPEN, yaw,
               tol=0.02),
     ]
+
+
+def turn(scene: Scene, joint: str, sign: float, done: Callable[[], bool]) -> list[Phase]:
+    """Push a knob's lever around its hinge with closed fingers (sign +1: the positive way)."""
+    yaw = lambda: 0.0  # noqa: E731
+
+    def tangent():
+        axis, anchor, _ = scene.joint(joint)
+        t = sign * np.cross(axis, scene.lever(joint) - anchor)
+        t[2] = 0.0
+        return t / max(np.linalg.norm(t), 1e-6)
+
+    start = lambda: scene.lever(joint) - tangent() * 0.035  # noqa: E731
+    height = scene.lever(joint)[2] + 0.018  # fingertips sit ~1 cm below the grip point
+    return [
+        Phase("above-lever", _at(start, height + 0.08), CLOSED, yaw, tol=0.015),
+        Phase("beside-lever", _at(start, height), CLOSED, yaw, tol=0.008, stall=True),
+        Phase("sweep", _at(lambda: scene.lever(joint) + tangent() * 0.04, height), CLOSED, yaw,
+              speed=0.5, limit=80, done=done),
+        Phase("rise", lambda: np.array([*scene.eef_pos()[:2], height + 0.08]), CLOSED, yaw,
+              tol=0.02),
+    ]
