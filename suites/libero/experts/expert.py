@@ -58,17 +58,21 @@ class GoalExpert:
         norm = np.linalg.norm(delta)
         if norm > phase.speed:
             delta *= phase.speed / norm
-        rot = orientation_error(_yaw_mat(phase.yaw()), scene.eef_mat()) / ROT_SCALE
+        rot = orientation_error(self._orientation(phase), scene.eef_mat()) / ROT_SCALE
         rot_norm = np.linalg.norm(rot)
         if rot_norm > ROT_CAP:
             rot *= ROT_CAP / rot_norm
         return np.clip(np.concatenate([delta, rot, [phase.grip]]), -1, 1).astype(np.float32)
 
+    @staticmethod
+    def _orientation(phase: Phase) -> np.ndarray:
+        return phase.orient() if phase.orient else _yaw_mat(phase.yaw())
+
     def _reached(self, phase: Phase) -> bool:
         scene = self.scene
         pos = scene.eef_pos()
         self.trail.append(pos)
-        yaw_err = np.linalg.norm(orientation_error(_yaw_mat(phase.yaw()), scene.eef_mat()))
+        yaw_err = np.linalg.norm(orientation_error(self._orientation(phase), scene.eef_mat()))
         if yaw_err > YAW_TOL:
             return False
         if np.linalg.norm(phase.target() - pos) < phase.tol:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from suites.libero.experts.scene import Scene
-from suites.libero.experts.skills import Grasp, Phase, pick, place, turn
+from suites.libero.experts.skills import Grasp, Phase, pick, place, slide, turn
 
 CARRY_CLEARANCE = 0.07  # the carried object's bottom above the higher of start and goal surface
+SLIDE = 2  # MuJoCo's mjJNT_SLIDE
 RELEASE_GAP = 0.012  # the object's bottom above its resting surface when the hand opens
 
 
@@ -30,6 +33,15 @@ def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
         travel = max(bottom, rest_z()) + CARRY_CLEARANCE + grasp.below
         travel = max(travel, scene.eef_pos()[2] - 0.05)
         return pick(scene, obj, grasp, travel) + place(scene, obj, grasp, xy, rest_z, travel)
+    if relation in ("open", "close"):
+        target = goal[1]
+        joint = scene.joint_name(target)
+        owner = scene.site_parent(target) if scene.is_site(target) else target
+        props = scene.thing(owner).object_properties["articulation"]
+        ranges = props["default_open_ranges" if relation == "open" else "default_close_ranges"]
+        if scene.model.jnt_type[scene.model.joint(joint).id] == SLIDE:
+            return slide(scene, joint, float(np.mean(ranges)), relation == "open",
+                         lambda: scene.check(goal))
     if relation in ("turnon", "turnoff"):
         # LIBERO's stoves: on is a positive knob angle, off is back to zero.
         return turn(scene, scene.joint_name(goal[1]), 1.0 if relation == "turnon" else -1.0,

@@ -143,3 +143,12 @@ class Scene:
         top = pos[pos[:, 2] > pos[:, 2].max() - 0.015]
         _, anchor, _ = self.joint(joint)
         return top[int(np.argmax(np.linalg.norm(top[:, :2] - anchor[:2], axis=1)))]
+
+    def handle(self, joint: str, outward: np.ndarray) -> np.ndarray:
+        """The collision geom of a joint's moving part that sticks out furthest `outward`."""
+        m = self.model
+        body = m.jnt_bodyid[m.joint(joint).id]
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        pos = np.array(self.data.geom_xpos[geoms])
+        return pos[int(np.argmax(pos @ outward))]

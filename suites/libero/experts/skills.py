@@ -32,6 +32,7 @@ class Phase:
     done: Callable[[], bool] | None = None
     speed: float = 1.0  # action-norm cap for the translation
     limit: int = MAX_PHASE_STEPS
+    orient: Callable[[], np.ndarray] | None = None  # a full hand orientation instead of yaw
     stall: bool = False  # a move that stops making progress (blocked by contact) counts as done
 
 
@@ -130,4 +131,44 @@ def turn(scene: Scene, joint: str, sign: float, done: Callable[[], bool]) -> lis
               speed=0.5, limit=80, done=done),
         Phase("rise", lambda: np.array([*scene.eef_pos()[:2], height + 0.08]), CLOSED, yaw,
               tol=0.02),
+    ]
+
+
+def facing(approach: np.ndarray) -> np.ndarray:
+    """The hand pointing horizontally along `approach`, fingers closing vertically."""
+    z = np.array([approach[0], approach[1], 0.0])
+    z /= np.linalg.norm(z)
+    x = np.array([0.0, 0.0, 1.0])
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def slide(scene: Scene, joint: str, target_q: float, opening: bool,
+          done: Callable[[], bool]) -> list[Phase]:
+    """Grip a drawer's handle from the front, fingers above and below it, and slide it."""
+    axis, _, q0 = scene.joint(joint)
+    direction = axis * (np.sign(target_q - q0) or 1.0)  # world direction the handle travels
+    direction[2] = 0.0
+    direction /= np.linalg.norm(direction)
+    front = direction if opening else -direction  # the handle is on the side it opens toward
+    orient = lambda: facing(-front)  # noqa: E731
+    yaw = lambda: 0.0  # noqa: E731
+
+    def handle():
+        return scene.handle(joint, front)
+
+    def slide_target():
+        remaining = abs(target_q - scene.joint(joint)[2]) + 0.03
+        return handle() + direction * remaining
+
+    return [
+        Phase("before-handle", lambda: handle() + front * 0.10, OPEN, yaw, tol=0.015,
+              orient=orient, limit=80),
+        Phase("to-handle", lambda: handle() - front * 0.01, OPEN, yaw, tol=0.008, speed=0.5,
+              orient=orient, stall=True),
+        Phase("grip-handle", lambda: scene.eef_pos(), CLOSED, yaw, steps=20,
+              done=scene.fingers_still, orient=orient),
+        Phase("slide", slide_target, CLOSED, yaw, done=done, speed=0.6, limit=100,
+              orient=orient),
+        Phase("let-go", lambda: scene.eef_pos(), OPEN, yaw, steps=10, orient=orient),
+        Phase("back-off", lambda: handle() + front * 0.10, OPEN, yaw, tol=0.02, orient=orient),
     ]
