@@ -10,7 +10,7 @@ import numpy as np
 from robosuite.utils.control_utils import orientation_error
 
 from suites.libero.experts.planner import plan_goal
-from suites.libero.experts.scene import GRIPPER_DOWN, Scene
+from suites.libero.experts.scene import Scene, hand_down
 from suites.libero.experts.skills import OPEN, Phase
 
 POS_SCALE, ROT_SCALE = 0.05, 0.5  # LIBERO's OSC_POSE: metres and radians per unit action
@@ -19,11 +19,6 @@ GAIN = 3.0  # the OSC lags its delta target; a proportional gain removes most of
 ROT_CAP = 0.4  # large turns at full rate throw the hand around: cap the rotation action
 YAW_TOL = 0.08  # a move is not done until the hand's yaw is this close (rad)
 MIN_TIMED = 8  # a timed gripper phase with its own `done` test runs at least this long
-
-
-def _yaw_mat(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ GRIPPER_DOWN
 
 
 class GoalExpert:
@@ -66,7 +61,7 @@ class GoalExpert:
 
     @staticmethod
     def _orientation(phase: Phase) -> np.ndarray:
-        return phase.orient() if phase.orient else _yaw_mat(phase.yaw())
+        return phase.orient() if phase.orient else hand_down(phase.yaw())
 
     def _reached(self, phase: Phase) -> bool:
         scene = self.scene

@@ -17,10 +17,16 @@ def _placement(scene: Scene, relation: str, target: str):
     if scene.is_site(target):
         size = scene.site_size(target)
         xy = lambda: scene.pos(target)[:2]  # noqa: E731
+        if _is_drawer(scene, target):  # drop it in just above the drawer region's centre
+            return xy, lambda: scene.pos(target)[2] + RELEASE_GAP
         if relation == "in":
             return xy, lambda: scene.pos(target)[2] + size[2] + RELEASE_GAP
         return xy, lambda: scene.pos(target)[2] + RELEASE_GAP
     return (lambda: scene.pos(target)[:2]), lambda: scene.box(target)[1][2] + RELEASE_GAP
+
+
+def _is_drawer(scene: Scene, target: str) -> bool:
+    return scene.is_site(target) and bool(scene.env.object_sites_dict[target].joints)
 
 
 def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
@@ -32,7 +38,10 @@ def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
         bottom = scene.box(obj)[0][2]
         travel = max(bottom, rest_z()) + CARRY_CLEARANCE + grasp.below
         travel = max(travel, scene.eef_pos()[2] - 0.05)
-        return pick(scene, obj, grasp, travel) + place(scene, obj, grasp, xy, rest_z, travel)
+        first = []
+        if _is_drawer(scene, target) and not scene.check(["open", target]):
+            first = plan_goal(scene, ["open", target])
+        return first + pick(scene, obj, grasp, travel) + place(scene, obj, grasp, xy, rest_z, travel)
     if relation in ("open", "close"):
         target = goal[1]
         joint = scene.joint_name(target)

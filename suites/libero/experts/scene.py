@@ -12,6 +12,12 @@ import numpy as np
 GRIPPER_DOWN = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 
+def hand_down(yaw: float) -> np.ndarray:
+    """The hand pointing down, turned `yaw` rad about the vertical from its home pose."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ GRIPPER_DOWN
+
+
 def _descendants(model, root: int) -> set[int]:
     bodies = {root}
     for b in range(root + 1, model.nbody):

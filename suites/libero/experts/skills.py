@@ -134,11 +134,17 @@ def turn(scene: Scene, joint: str, sign: float, done: Callable[[], bool]) -> lis
     ]
 
 
-def facing(approach: np.ndarray) -> np.ndarray:
-    """The hand pointing horizontally along `approach`, fingers closing vertically."""
-    z = np.array([approach[0], approach[1], 0.0])
-    z /= np.linalg.norm(z)
-    x = np.array([0.0, 0.0, 1.0])
+def facing(approach: np.ndarray, tilt: float) -> np.ndarray:
+    """The hand tipped `tilt` rad from pointing down toward the horizontal `approach`.
+
+    The fingers close in the vertical plane of the approach: along it when pointing down,
+    vertically when pointing straight ahead.
+    """
+    a = np.array([approach[0], approach[1], 0.0])
+    a /= np.linalg.norm(a)
+    up = np.array([0.0, 0.0, 1.0])
+    z = -np.cos(tilt) * up + np.sin(tilt) * a
+    x = np.sin(tilt) * up + np.cos(tilt) * a
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
@@ -150,8 +156,10 @@ def slide(scene: Scene, joint: str, target_q: float, opening: bool,
     direction[2] = 0.0
     direction /= np.linalg.norm(direction)
     front = direction if opening else -direction  # the handle is on the side it opens toward
-    orient = lambda: facing(-front)  # noqa: E731
+    hand = facing(-front, np.pi / 2)  # from the front: other handles may sit right above it
+    orient = lambda: hand  # noqa: E731
     yaw = lambda: 0.0  # noqa: E731
+    back = -hand[:, 2]  # from the handle back along the hand's pointing direction
 
     def handle():
         return scene.handle(joint, front)
@@ -161,14 +169,14 @@ def slide(scene: Scene, joint: str, target_q: float, opening: bool,
         return handle() + direction * remaining
 
     return [
-        Phase("before-handle", lambda: handle() + front * 0.10, OPEN, yaw, tol=0.015,
+        Phase("before-handle", lambda: handle() + back * 0.10, OPEN, yaw, tol=0.015,
               orient=orient, limit=80),
-        Phase("to-handle", lambda: handle() - front * 0.01, OPEN, yaw, tol=0.008, speed=0.5,
+        Phase("to-handle", lambda: handle() - back * 0.01, OPEN, yaw, tol=0.008, speed=0.5,
               orient=orient, stall=True),
         Phase("grip-handle", lambda: scene.eef_pos(), CLOSED, yaw, steps=20,
               done=scene.fingers_still, orient=orient),
         Phase("slide", slide_target, CLOSED, yaw, done=done, speed=0.6, limit=100,
               orient=orient),
         Phase("let-go", lambda: scene.eef_pos(), OPEN, yaw, steps=10, orient=orient),
-        Phase("back-off", lambda: handle() + front * 0.10, OPEN, yaw, tol=0.02, orient=orient),
+        Phase("back-off", lambda: handle() + back * 0.10, OPEN, yaw, tol=0.02, orient=orient),
     ]
