@@ -36,6 +36,19 @@ class Phase:
     stall: bool = False  # a move that stops making progress (blocked by contact) counts as done
 
 
+class _Here:
+    """A target that stays where the hand was when the phase began (gripper phases hold still;
+    a zero command would let the arm drift while the fingers push on something)."""
+
+    def __init__(self, scene: Scene):
+        self.scene, self.pos = scene, None
+
+    def __call__(self) -> np.ndarray:
+        if self.pos is None:
+            self.pos = self.scene.eef_pos()
+        return self.pos
+
+
 def _wrap_half_turn(yaw: float) -> float:
     """The hand is symmetric under a half turn: take the equivalent yaw in (-pi/2, pi/2]."""
     return np.pi / 2 - (np.pi / 2 - yaw) % np.pi
@@ -85,7 +98,7 @@ def pick(scene: Scene, obj: str, grasp: Grasp, travel_z: float) -> list[Phase]:
     return [
         Phase("above", _at(grip_point, max(above, grip_point()[2] + 0.06)), OPEN, yaw, tol=0.015),
         Phase("descend", grip_point, OPEN, yaw, tol=0.006, speed=0.6, stall=True),
-        Phase("close", lambda: scene.eef_pos(), CLOSED, yaw, steps=20, done=scene.fingers_still),
+        Phase("close", _Here(scene), CLOSED, yaw, steps=20, done=scene.fingers_still),
         Phase("lift", _at(scene.eef_pos, travel_z), CLOSED, yaw, carrying=obj, tol=0.02,
               speed=0.7),
     ]
@@ -105,7 +118,7 @@ def place(scene: Scene, obj: str, grasp: Grasp, target_xy: Callable[[], np.ndarr
               speed=0.8, limit=80),
         Phase("lower", _at(hand_xy_obj, release_z), CLOSED, yaw, carrying=obj, tol=0.01,
               speed=0.5),
-        Phase("release", lambda: scene.eef_pos(), OPEN, yaw, steps=25,
+        Phase("release", _Here(scene), OPEN, yaw, steps=25,
               done=lambda: scene.fingers_still() and not scene.is_grasped(obj)),
         Phase("retreat", lambda: np.array([*scene.eef_pos()[:2], travel_z]), OPEN, yaw,
               tol=0.02),
@@ -173,10 +186,10 @@ def slide(scene: Scene, joint: str, target_q: float, opening: bool,
               orient=orient, limit=80),
         Phase("to-handle", lambda: handle() - back * 0.01, OPEN, yaw, tol=0.008, speed=0.5,
               orient=orient, stall=True),
-        Phase("grip-handle", lambda: scene.eef_pos(), CLOSED, yaw, steps=20,
+        Phase("grip-handle", _Here(scene), CLOSED, yaw, steps=20,
               done=scene.fingers_still, orient=orient),
         Phase("slide", slide_target, CLOSED, yaw, done=done, speed=0.6, limit=100,
               orient=orient),
-        Phase("let-go", lambda: scene.eef_pos(), OPEN, yaw, steps=10, orient=orient),
+        Phase("let-go", _Here(scene), OPEN, yaw, steps=10, orient=orient),
         Phase("back-off", lambda: handle() + back * 0.10, OPEN, yaw, tol=0.02, orient=orient),
     ]
