@@ -26,7 +26,11 @@ def _placement(scene: Scene, relation: str, target: str):
 
 
 def _is_drawer(scene: Scene, target: str) -> bool:
-    return scene.is_site(target) and bool(scene.env.object_sites_dict[target].joints)
+    """A region that moves on a slide joint (inside a drawer), not one on a free object."""
+    if not scene.is_site(target) or not scene.env.object_sites_dict[target].joints:
+        return False
+    joint = scene.model.joint(scene.joint_name(target)).id
+    return int(scene.model.jnt_type[joint]) == SLIDE
 
 
 def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
