@@ -60,8 +60,3 @@ def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
         return turn(scene, scene.joint_name(goal[1]), 1.0 if relation == "turnon" else -1.0,
                     lambda: scene.check(goal))
     raise KeyError(f"no skill for goal predicate {goal!r}")
-
-
-def supported(goal: list[str]) -> bool:
-    return goal[0] in ("in", "on", "turnon", "turnoff")
-
