@@ -8,7 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
-GRIPPER_DOWN = np.diag([1.0, -1.0, -1.0])  # the Panda's hand pointing down, fingers along world y
+# The eef site's frame with the hand pointing down and the fingers closing along world y
+GRIPPER_DOWN = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def hand_down(yaw: float) -> np.ndarray:
+    """The hand pointing down, turned `yaw` rad about the vertical from its home pose."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ GRIPPER_DOWN
 
 
 def _descendants(model, root: int) -> set[int]:
@@ -39,6 +46,12 @@ class Scene:
     def is_grasped(self, name: str) -> bool:
         robot = self.env.robots[0]
         return bool(self.env._check_grasp(robot.gripper["right"], self.thing(name)))
+
+    def fingers_still(self) -> bool:
+        """The gripper fingers have stopped moving (closed on something, or fully)."""
+        robot = self.env.robots[0]
+        qvel = self.sim.data.qvel[robot._ref_gripper_joint_vel_indexes["right"]]
+        return bool(np.abs(qvel).max() < 0.005)
 
     # -- objects, fixtures and sites -------------------------------------------------------
     def thing(self, name: str):
@@ -91,13 +104,18 @@ class Scene:
         return pts.min(0), pts.max(0)
 
     def footprint(self, name: str) -> tuple[float, float, float]:
-        """(narrow width, long width, yaw of the narrow axis) of the object's box in its frame."""
-        rot = self.mat(name)
-        local = (self._corners(name) - self.pos(name)) @ rot
-        ext = local.max(0) - local.min(0)
-        narrow = 0 if ext[0] <= ext[1] else 1
-        axis = rot[:, narrow]
-        return float(ext[narrow]), float(ext[1 - narrow]), float(np.arctan2(axis[1], axis[0]))
+        """(narrow width, long width, yaw of the narrow direction) of the object seen from above.
+
+        Found by sweeping directions in the plane, so it holds however the model's body frame
+        is oriented (some LIBERO objects are modelled lying down and stood up by their pose).
+        """
+        pts = self._corners(name)[:, :2]
+        yaws = np.linspace(0.0, np.pi, 36, endpoint=False)
+        dirs = np.stack([np.cos(yaws), np.sin(yaws)], 1)
+        proj = pts @ dirs.T
+        widths = proj.max(0) - proj.min(0)
+        k = int(widths.argmin())
+        return float(widths[k]), float(widths.max()), float(yaws[k])
 
     def joint_qpos(self, name: str) -> float:
         """The first joint of an articulated object (or of a site's joints)."""
@@ -108,3 +126,35 @@ class Scene:
     def check(self, predicate: list[str]) -> bool:
         """One BDDL goal predicate, evaluated the way LIBERO's success check does."""
         return bool(self.env._eval_predicate(predicate))
+
+    # -- articulated parts -----------------------------------------------------------------
+    def joint_name(self, name: str) -> str:
+        joints = (self.env.object_sites_dict[name].joints if self.is_site(name)
+                  else self.thing(name).joints)
+        return joints[0]
+
+    def joint(self, joint: str) -> tuple[np.ndarray, np.ndarray, float]:
+        """(world axis, world anchor, position) of a joint."""
+        j = self.model.joint(joint).id
+        return (np.array(self.data.xaxis[j]), np.array(self.data.xanchor[j]),
+                float(self.data.qpos[self.model.jnt_qposadr[j]]))
+
+    def lever(self, joint: str) -> np.ndarray:
+        """A point to push a knob by: its highest parts' geom furthest from the hinge axis."""
+        m = self.model
+        body = m.jnt_bodyid[m.joint(joint).id]
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        pos = np.array(self.data.geom_xpos[geoms])
+        top = pos[pos[:, 2] > pos[:, 2].max() - 0.015]
+        _, anchor, _ = self.joint(joint)
+        return top[int(np.argmax(np.linalg.norm(top[:, :2] - anchor[:2], axis=1)))]
+
+    def handle(self, joint: str, outward: np.ndarray) -> np.ndarray:
+        """The collision geom of a joint's moving part that sticks out furthest `outward`."""
+        m = self.model
+        body = m.jnt_bodyid[m.joint(joint).id]
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        pos = np.array(self.data.geom_xpos[geoms])
+        return pos[int(np.argmax(pos @ outward))]

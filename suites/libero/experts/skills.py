@@ -16,7 +16,7 @@ from suites.libero.experts.scene import Scene
 
 OPEN, CLOSED = -1.0, 1.0
 MAX_PHASE_STEPS = 60
-FINGER_REACH = 0.035  # grip point below an object's top for tall things (finger pad length)
+FINGER_REACH = 0.027  # the palm sits about 3 cm above the grip point: grip no deeper
 GRIPPER_SPAN = 0.075  # widest thing the open hand takes in across its fingers
 
 
@@ -32,11 +32,26 @@ class Phase:
     done: Callable[[], bool] | None = None
     speed: float = 1.0  # action-norm cap for the translation
     limit: int = MAX_PHASE_STEPS
+    orient: Callable[[], np.ndarray] | None = None  # a full hand orientation instead of yaw
+    stall: bool = False  # a move that stops making progress (blocked by contact) counts as done
+
+
+class _Here:
+    """A target that stays where the hand was when the phase began (gripper phases hold still;
+    a zero command would let the arm drift while the fingers push on something)."""
+
+    def __init__(self, scene: Scene):
+        self.scene, self.pos = scene, None
+
+    def __call__(self) -> np.ndarray:
+        if self.pos is None:
+            self.pos = self.scene.eef_pos()
+        return self.pos
 
 
 def _wrap_half_turn(yaw: float) -> float:
-    """The hand is symmetric under a half turn: take the equivalent yaw in [-pi/2, pi/2)."""
-    return (yaw + np.pi / 2) % np.pi - np.pi / 2
+    """The hand is symmetric under a half turn: take the equivalent yaw in (-pi/2, pi/2]."""
+    return np.pi / 2 - (np.pi / 2 - yaw) % np.pi
 
 
 @dataclass
@@ -56,7 +71,7 @@ class Grasp:
         height = hi[2] - lo[2]
         grip_z = max(lo[2] + min(0.012, height / 2), hi[2] - FINGER_REACH)
         # Fingers close along the hand's y axis; at yaw 0 that is world y.
-        if narrow <= GRIPPER_SPAN and wide > 1.15 * narrow:
+        if narrow <= GRIPPER_SPAN and wide > 0.06 and wide > 1.15 * narrow:
             yaw = _wrap_half_turn(narrow_yaw - np.pi / 2)
         else:
             yaw = 0.0
@@ -82,8 +97,8 @@ def pick(scene: Scene, obj: str, grasp: Grasp, travel_z: float) -> list[Phase]:
     above = min(travel_z, grip_point()[2] + 0.12)
     return [
         Phase("above", _at(grip_point, max(above, grip_point()[2] + 0.06)), OPEN, yaw, tol=0.015),
-        Phase("descend", grip_point, OPEN, yaw, tol=0.008, speed=0.6),
-        Phase("close", lambda: scene.eef_pos(), CLOSED, yaw, steps=12),
+        Phase("descend", grip_point, OPEN, yaw, tol=0.006, speed=0.6, stall=True),
+        Phase("close", _Here(scene), CLOSED, yaw, steps=20, done=scene.fingers_still),
         Phase("lift", _at(scene.eef_pos, travel_z), CLOSED, yaw, carrying=obj, tol=0.02,
               speed=0.7),
     ]
@@ -103,7 +118,78 @@ def place(scene: Scene, obj: str, grasp: Grasp, target_xy: Callable[[], np.ndarr
               speed=0.8, limit=80),
         Phase("lower", _at(hand_xy_obj, release_z), CLOSED, yaw, carrying=obj, tol=0.01,
               speed=0.5),
-        Phase("release", lambda: scene.eef_pos(), OPEN, yaw, steps=8),
+        Phase("release", _Here(scene), OPEN, yaw, steps=25,
+              done=lambda: scene.fingers_still() and not scene.is_grasped(obj)),
         Phase("retreat", lambda: np.array([*scene.eef_pos()[:2], travel_z]), OPEN, yaw,
               tol=0.02),
+    ]
+
+
+def turn(scene: Scene, joint: str, sign: float, done: Callable[[], bool]) -> list[Phase]:
+    """Push a knob's lever around its hinge with closed fingers (sign +1: the positive way)."""
+    yaw = lambda: 0.0  # noqa: E731
+
+    def tangent():
+        axis, anchor, _ = scene.joint(joint)
+        t = sign * np.cross(axis, scene.lever(joint) - anchor)
+        t[2] = 0.0
+        return t / max(np.linalg.norm(t), 1e-6)
+
+    start = lambda: scene.lever(joint) - tangent() * 0.035  # noqa: E731
+    height = scene.lever(joint)[2] + 0.018  # fingertips sit ~1 cm below the grip point
+    return [
+        Phase("above-lever", _at(start, height + 0.08), CLOSED, yaw, tol=0.015),
+        Phase("beside-lever", _at(start, height), CLOSED, yaw, tol=0.008, stall=True),
+        Phase("sweep", _at(lambda: scene.lever(joint) + tangent() * 0.04, height), CLOSED, yaw,
+              speed=0.5, limit=80, done=done),
+        Phase("rise", lambda: np.array([*scene.eef_pos()[:2], height + 0.08]), CLOSED, yaw,
+              tol=0.02),
+    ]
+
+
+def facing(approach: np.ndarray, tilt: float) -> np.ndarray:
+    """The hand tipped `tilt` rad from pointing down toward the horizontal `approach`.
+
+    The fingers close in the vertical plane of the approach: along it when pointing down,
+    vertically when pointing straight ahead.
+    """
+    a = np.array([approach[0], approach[1], 0.0])
+    a /= np.linalg.norm(a)
+    up = np.array([0.0, 0.0, 1.0])
+    z = -np.cos(tilt) * up + np.sin(tilt) * a
+    x = np.sin(tilt) * up + np.cos(tilt) * a
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def slide(scene: Scene, joint: str, target_q: float, opening: bool,
+          done: Callable[[], bool]) -> list[Phase]:
+    """Grip a drawer's handle from the front, fingers above and below it, and slide it."""
+    axis, _, q0 = scene.joint(joint)
+    direction = axis * (np.sign(target_q - q0) or 1.0)  # world direction the handle travels
+    direction[2] = 0.0
+    direction /= np.linalg.norm(direction)
+    front = direction if opening else -direction  # the handle is on the side it opens toward
+    hand = facing(-front, np.pi / 2)  # from the front: other handles may sit right above it
+    orient = lambda: hand  # noqa: E731
+    yaw = lambda: 0.0  # noqa: E731
+    back = -hand[:, 2]  # from the handle back along the hand's pointing direction
+
+    def handle():
+        return scene.handle(joint, front)
+
+    def slide_target():
+        remaining = abs(target_q - scene.joint(joint)[2]) + 0.03
+        return handle() + direction * remaining
+
+    return [
+        Phase("before-handle", lambda: handle() + back * 0.10, OPEN, yaw, tol=0.015,
+              orient=orient, limit=80),
+        Phase("to-handle", lambda: handle() - back * 0.01, OPEN, yaw, tol=0.008, speed=0.5,
+              orient=orient, stall=True),
+        Phase("grip-handle", _Here(scene), CLOSED, yaw, steps=20,
+              done=scene.fingers_still, orient=orient),
+        Phase("slide", slide_target, CLOSED, yaw, done=done, speed=0.6, limit=100,
+              orient=orient),
+        Phase("let-go", _Here(scene), OPEN, yaw, steps=10, orient=orient),
+        Phase("back-off", lambda: handle() + back * 0.10, OPEN, yaw, tol=0.02, orient=orient),
     ]
