@@ -48,8 +48,9 @@ def _instructions():
 
 
 def _in_process(policy, settings, align_chunks):
-    episodes = evaluation_episodes("metaworld", TASKS, settings.episodes)
-    envs = EnvCache(get_suite("metaworld"), settings)
+    suite = get_suite("metaworld")
+    episodes = evaluation_episodes(suite, TASKS, settings.episodes, settings.max_episode_steps)
+    envs = EnvCache(suite, settings)
     try:
         outcomes = rollout(policy, episodes, _instructions(), settings, 5, envs, align_chunks)
     finally:
