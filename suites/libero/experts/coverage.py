@@ -19,12 +19,13 @@ LIBERO_OBJECT = (
     "pick_up_the_orange_juice_and_place_it_in_the_basket",
 )
 
+# Not yet: pick_up_the_black_bowl_in_the_top_drawer_of_the_wooden_cabinet_and_place_it_on_the_plate
+# (2/5 when the env is reused across episodes, though each failing state solves in a fresh env).
 LIBERO_SPATIAL = (
     "pick_up_the_black_bowl_between_the_plate_and_the_ramekin_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_next_to_the_ramekin_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_from_table_center_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_on_the_cookie_box_and_place_it_on_the_plate",
-    "pick_up_the_black_bowl_in_the_top_drawer_of_the_wooden_cabinet_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_on_the_ramekin_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_next_to_the_cookie_box_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_on_the_stove_and_place_it_on_the_plate",
@@ -45,4 +46,43 @@ LIBERO_GOAL = (
     "put_the_wine_bottle_on_the_rack",
 )
 
-EXPERT_TASKS = frozenset(LIBERO_OBJECT + LIBERO_SPATIAL + LIBERO_GOAL)
+# Solved from init states 0 and 1 (n=2 each, a first screen; 43 tasks tried, see README.md).
+LIBERO_90 = (
+    "KITCHEN_SCENE1_put_the_black_bowl_on_the_plate",
+    "KITCHEN_SCENE1_put_the_black_bowl_on_top_of_the_cabinet",
+    "KITCHEN_SCENE2_put_the_black_bowl_at_the_back_on_the_plate",
+    "KITCHEN_SCENE2_put_the_black_bowl_at_the_front_on_the_plate",
+    "KITCHEN_SCENE2_put_the_middle_black_bowl_on_the_plate",
+    "KITCHEN_SCENE2_put_the_middle_black_bowl_on_top_of_the_cabinet",
+    "KITCHEN_SCENE2_stack_the_black_bowl_at_the_front_on_the_black_bowl_in_the_middle",
+    "KITCHEN_SCENE2_stack_the_middle_black_bowl_on_the_back_black_bowl",
+    "KITCHEN_SCENE4_put_the_black_bowl_on_top_of_the_cabinet",
+    "KITCHEN_SCENE4_put_the_wine_bottle_on_the_wine_rack",
+    "KITCHEN_SCENE5_put_the_black_bowl_on_the_plate",
+    "KITCHEN_SCENE5_put_the_black_bowl_on_top_of_the_cabinet",
+    "KITCHEN_SCENE7_put_the_white_bowl_on_the_plate",
+    "KITCHEN_SCENE7_put_the_white_bowl_to_the_right_of_the_plate",
+    "KITCHEN_SCENE9_put_the_white_bowl_on_top_of_the_cabinet",
+    "LIVING_ROOM_SCENE1_pick_up_the_alphabet_soup_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE1_pick_up_the_cream_cheese_box_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE1_pick_up_the_ketchup_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE1_pick_up_the_tomato_sauce_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE2_pick_up_the_alphabet_soup_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE2_pick_up_the_butter_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE2_pick_up_the_milk_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE2_pick_up_the_orange_juice_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE2_pick_up_the_tomato_sauce_and_put_it_in_the_basket",
+    "LIVING_ROOM_SCENE3_pick_up_the_alphabet_soup_and_put_it_in_the_tray",
+    "LIVING_ROOM_SCENE3_pick_up_the_butter_and_put_it_in_the_tray",
+    "LIVING_ROOM_SCENE3_pick_up_the_cream_cheese_and_put_it_in_the_tray",
+    "LIVING_ROOM_SCENE3_pick_up_the_ketchup_and_put_it_in_the_tray",
+    "LIVING_ROOM_SCENE3_pick_up_the_tomato_sauce_and_put_it_in_the_tray",
+    "LIVING_ROOM_SCENE4_pick_up_the_chocolate_pudding_and_put_it_in_the_tray",
+    "LIVING_ROOM_SCENE5_put_the_red_mug_on_the_right_plate",
+    "LIVING_ROOM_SCENE5_put_the_white_mug_on_the_left_plate",
+    "LIVING_ROOM_SCENE5_put_the_yellow_and_white_mug_on_the_right_plate",
+    "LIVING_ROOM_SCENE6_put_the_red_mug_on_the_plate",
+    "LIVING_ROOM_SCENE6_put_the_white_mug_on_the_plate",
+)
+
+EXPERT_TASKS = frozenset(LIBERO_OBJECT + LIBERO_SPATIAL + LIBERO_GOAL + LIBERO_90)

@@ -81,8 +81,8 @@ class GoalExpert:
             if not self.plan:
                 return None
             phase = self.plan[self.i]
-            if phase.carrying and self.t > 2:
-                self.slipping = 0 if scene.is_grasped(phase.carrying) else self.slipping + 1
+            if phase.held and self.t > 2:
+                self.slipping = 0 if phase.held() else self.slipping + 1
                 if self.slipping >= SLIP_STEPS:
                     self._replan()
                     continue

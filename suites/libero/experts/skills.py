@@ -17,6 +17,7 @@ from suites.libero.experts.scene import Scene
 OPEN, CLOSED = -1.0, 1.0
 MAX_PHASE_STEPS = 60
 FINGER_REACH = 0.027  # the palm sits about 3 cm above the grip point: grip no deeper
+HELD_DRIFT = 0.03  # how far an object may sit from its grip point and still count as held
 GRIPPER_SPAN = 0.075  # widest thing the open hand takes in across its fingers
 
 
@@ -28,7 +29,7 @@ class Phase:
     yaw: Callable[[], float]
     steps: int = 0  # >0: a timed phase (open/close the gripper) instead of a move
     tol: float = 0.01
-    carrying: str | None = None  # this object must stay in hand, or the skill starts over
+    held: Callable[[], bool] | None = None  # must stay true (object in hand), or start over
     done: Callable[[], bool] | None = None
     speed: float = 1.0  # action-norm cap for the translation
     limit: int = MAX_PHASE_STEPS
@@ -61,6 +62,14 @@ class Grasp:
     offset: np.ndarray  # grip point minus the object's body position, world frame, at plan time
     yaw: float
     below: float  # from the grip point down to the object's bottom
+
+    def holds(self, scene: Scene, obj: str) -> Callable[[], bool]:
+        """In hand: both finger pads touch it, or it still sits where the grip put it (a bowl
+        pinched by its rim often touches one pad only)."""
+        def test() -> bool:
+            near = np.linalg.norm(scene.pos(obj) + self.offset - scene.eef_pos()) < HELD_DRIFT
+            return near or scene.is_grasped(obj)
+        return test
 
     @classmethod
     def plan(cls, scene: Scene, obj: str) -> Grasp:
@@ -99,7 +108,7 @@ def pick(scene: Scene, obj: str, grasp: Grasp, travel_z: float) -> list[Phase]:
         Phase("above", _at(grip_point, max(above, grip_point()[2] + 0.06)), OPEN, yaw, tol=0.015),
         Phase("descend", grip_point, OPEN, yaw, tol=0.006, speed=0.6, stall=True),
         Phase("close", _Here(scene), CLOSED, yaw, steps=20, done=scene.fingers_still),
-        Phase("lift", _at(scene.eef_pos, travel_z), CLOSED, yaw, carrying=obj, tol=0.02,
+        Phase("lift", _at(scene.eef_pos, travel_z), CLOSED, yaw, held=grasp.holds(scene, obj), tol=0.02,
               speed=0.7),
     ]
 
@@ -114,9 +123,9 @@ def place(scene: Scene, obj: str, grasp: Grasp, target_xy: Callable[[], np.ndarr
     yaw = lambda: grasp.yaw  # noqa: E731
     release_z = lambda: rest_z() + grasp.below  # noqa: E731
     return [
-        Phase("carry", _at(hand_xy_obj, travel_z), CLOSED, yaw, carrying=obj, tol=0.012,
+        Phase("carry", _at(hand_xy_obj, travel_z), CLOSED, yaw, held=grasp.holds(scene, obj), tol=0.012,
               speed=0.8, limit=80),
-        Phase("lower", _at(hand_xy_obj, release_z), CLOSED, yaw, carrying=obj, tol=0.01,
+        Phase("lower", _at(hand_xy_obj, release_z), CLOSED, yaw, held=grasp.holds(scene, obj), tol=0.01,
               speed=0.5),
         Phase("release", _Here(scene), OPEN, yaw, steps=25,
               done=lambda: scene.fingers_still() and not scene.is_grasped(obj)),
