@@ -1,12 +1,14 @@
-"""The scripted experts on real LIBERO: coverage errors, and one real rollout to success."""
+"""The scripted experts on real LIBERO: coverage errors, and real rollouts to success through the
+suite's own env (LIBERO's protocol: the fixed init state, the settle steps, the step limit)."""
 
 from __future__ import annotations
 
 import pytest
 
+from suites import get_suite
 from suites.libero.experts import EXPERT_TASKS, make_expert
 from suites.libero.experts.coverage import LIBERO_OBJECT
-from suites.libero.experts.libero_env import STEP_LIMITS, make_env, start_episode, suite_tasks
+from suites.libero.tasks import suite_tasks
 
 
 def test_uncovered_task_raises_one_line_key_error():
@@ -18,39 +20,31 @@ def test_uncovered_task_raises_one_line_key_error():
 
 def test_libero_object_suite_is_covered():
     assert set(LIBERO_OBJECT) <= EXPERT_TASKS
-    assert [t.name for t in suite_tasks("libero_object")] == list(LIBERO_OBJECT)
+    assert suite_tasks("libero_object") == list(LIBERO_OBJECT)
+
+
+def _solves(task: str, init_state: int) -> bool:
+    suite = get_suite("libero")
+    env = suite.make_env(task)
+    try:
+        env.reset(init_state)  # evaluation key i: init state i, then the no-op settle
+        assert not env.success()
+        for _ in range(suite.max_steps(task)):
+            action = env.expert_action()
+            assert action.shape == (7,) and abs(action).max() <= 1.0
+            if env.step(action).success:
+                return True
+        return False
+    finally:
+        env.close()
 
 
 def test_expert_solves_a_libero_object_task_from_a_fixed_init_state():
-    task = suite_tasks("libero_object")[1]  # cream cheese: a flat box, the yaw-aligned grasp
-    env = make_env(task)
-    try:
-        obs = start_episode(env, task, state=3)
-        assert not env.check_success()
-        expert = make_expert(task.name, env)
-        for _ in range(STEP_LIMITS["libero_object"]):
-            action = expert.act(obs)
-            assert action.shape == (7,) and abs(action).max() <= 1.0
-            obs, _, _, _ = env.step(action)
-            if env.check_success():
-                break
-        assert env.check_success()
-    finally:
-        env.close()
+    # cream cheese: a flat box, the yaw-aligned grasp
+    assert _solves(suite_tasks("libero_object")[1], init_state=3)
 
 
 def test_expert_turns_a_knob_from_a_fixed_init_state():
     task = suite_tasks("libero_goal")[7]  # turn on the stove: the articulated family
-    assert task.name == "turn_on_the_stove"
-    env = make_env(task)
-    try:
-        obs = start_episode(env, task, state=2)
-        assert not env.check_success()
-        expert = make_expert(task.name, env)
-        for _ in range(STEP_LIMITS["libero_goal"]):
-            obs, _, _, _ = env.step(expert.act(obs))
-            if env.check_success():
-                break
-        assert env.check_success()
-    finally:
-        env.close()
+    assert task == "turn_on_the_stove"
+    assert _solves(task, init_state=2)

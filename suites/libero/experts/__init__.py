@@ -5,7 +5,7 @@
     action = expert.act(raw_obs)          # (7,) in [-1, 1]: OSC_POSE delta + gripper
 
 `env` is LIBERO's `OffScreenRenderEnv` (or the problem env inside it). Covered tasks are the
-ones in `coverage.EXPERT_TASKS`, each measured by `python -m suites.libero.experts.measure`.
+ones in `coverage.EXPERT_TASKS`, each measured by `python -m suites.libero.expert_table` (see coverage.py).
 """
 
 from __future__ import annotations

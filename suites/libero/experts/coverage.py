@@ -1,7 +1,8 @@
 """The LIBERO tasks whose scripted expert was measured to solve them (table: README.md here).
 
-A task is listed when `python -m suites.libero.experts.measure <suite>` solved it from the
-measured init states at the issue's bar (80%; 70% for libero_90). Others raise KeyError.
+A task is listed when its expert solved it from the measured init states at the issue's bar
+(80%; 70% for libero_90); others raise KeyError. To try a task, list it here, then measure it:
+`python -m suites.libero.expert_table <suite> --tasks <task> --episodes N --no-write`.
 """
 
 from __future__ import annotations
