@@ -17,7 +17,7 @@ OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v)
 quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
 .PHONY: bench compare sweep report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
-	bench-eval
+	bench-eval libero-check
 
 $(STAMP): requirements.lock pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -60,6 +60,11 @@ bench-eval: $(STAMP)
 	$(PY) -m harness.perf eval $(or $(WORKERS),2) \
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
 		$(if $(device),--device $(device))
+
+# every real LIBERO task builds, starts from an init state and steps (slow: about 10 minutes for
+# all 130); make libero-check LIBERO_SUITES="libero_object libero_goal"
+libero-check: $(STAMP)
+	$(PY) -m suites.libero.build_all $(LIBERO_SUITES)
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings tests
