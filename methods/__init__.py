@@ -7,11 +7,9 @@ imports a user's class from their own module without touching this repository.
 from __future__ import annotations
 
 import importlib
-import importlib.util
-import sys
-from pathlib import Path
 
 from methods.base import Method, MethodConfig, TaskContext
+from policies.user_class import load_class
 
 _REGISTRY: dict[str, type[Method]] = {}
 
@@ -34,21 +32,6 @@ def _load_builtins() -> None:
         importlib.import_module(f"methods.{info.name}")
 
 
-def _import(module_name: str):
-    """A module by dotted name, or by path when it ends in .py."""
-    if not module_name.endswith(".py"):
-        return importlib.import_module(module_name)
-
-    path = Path(module_name).expanduser().resolve()
-    if not path.exists():
-        raise ImportError(f"no such file {path}")
-    spec = importlib.util.spec_from_file_location(path.stem, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[path.stem] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 def method_names() -> list[str]:
     _load_builtins()
     return sorted(_REGISTRY)
@@ -57,14 +40,7 @@ def method_names() -> list[str]:
 def get_method(spec: str) -> type[Method]:
     """A method class from a registered name or `module.path:ClassName`."""
     if ":" in spec:
-        module_name, _, class_name = spec.rpartition(":")
-        try:
-            module = _import(module_name)
-        except (ImportError, OSError) as exc:
-            raise ValueError(f"cannot import method module {module_name!r} ({exc})") from None
-        cls = getattr(module, class_name, None)
-        if cls is None:
-            raise ValueError(f"module {module_name!r} has no class {class_name!r}")
+        cls = load_class(spec, "method")
         if not (isinstance(cls, type) and issubclass(cls, Method)):
             raise ValueError(f"{spec!r} is not a method: it must subclass methods.Method")
         return cls

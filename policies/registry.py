@@ -4,12 +4,11 @@ The contract a policy class meets is in `policies/base.py`."""
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import sys
-from pathlib import Path
 
 from torch import nn
+
+from policies.user_class import load_class
 
 _REGISTRY: dict[str, type[nn.Module]] = {}
 
@@ -34,25 +33,6 @@ def policy_names() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def _import(module_name: str):
-    """A module by dotted name, or by path when it ends in .py. A file's folder joins sys.path,
-    so evaluation workers (spawned with the parent's sys.path) import it by the same name."""
-    if not module_name.endswith(".py"):
-        return importlib.import_module(module_name)
-    path = Path(module_name).expanduser().resolve()
-    if not path.exists():
-        raise ImportError(f"no such file {path}")
-    if str(path.parent) not in sys.path:
-        sys.path.insert(0, str(path.parent))
-    if path.stem in sys.modules and getattr(sys.modules[path.stem], "__file__", None) == str(path):
-        return sys.modules[path.stem]
-    spec = importlib.util.spec_from_file_location(path.stem, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[path.stem] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 def get_policy(spec: str) -> type[nn.Module]:
     """A policy class from a registered name or `module.path:ClassName` / `file.py:ClassName`;
     a ValueError naming the valid ones otherwise."""
@@ -62,14 +42,7 @@ def get_policy(spec: str) -> type[nn.Module]:
             raise ValueError(f"unknown policy {spec!r}; valid: {', '.join(sorted(_REGISTRY))}, "
                              f"module.path:ClassName or file.py:ClassName")
         return _REGISTRY[spec]
-    module_name, _, class_name = spec.rpartition(":")
-    try:
-        module = _import(module_name)
-    except (ImportError, OSError) as exc:
-        raise ValueError(f"cannot import policy module {module_name!r} ({exc})") from None
-    cls = getattr(module, class_name, None)
-    if cls is None:
-        raise ValueError(f"module {module_name!r} has no class {class_name!r}")
+    cls = load_class(spec, "policy")
     if not (isinstance(cls, type) and issubclass(cls, nn.Module) and hasattr(cls, "Config")):
         raise ValueError(f"{spec!r} is not a policy: it must be a torch.nn.Module with a Config "
                          f"dataclass (see docs/adding-a-policy.md)")
