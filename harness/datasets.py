@@ -65,6 +65,12 @@ class TrainingData:
         """At most `n` samples drawn without replacement."""
         return self.subset(torch.randperm(len(self), generator=generator)[:n])
 
+    def per_task_subset(self, n: int, generator: torch.Generator) -> TrainingData:
+        """At most `n` samples of each task, drawn without replacement: what a replay buffer or
+        an episodic memory keeps of a finished stage."""
+        return TrainingData.concat([self.for_task(t).random_subset(n, generator)
+                                    for t in self.task_names])
+
     @staticmethod
     def concat(parts: list[TrainingData]) -> TrainingData:
         """Join datasets, re-indexing tasks so every task name appears once."""

@@ -84,9 +84,8 @@ class AGEM(Method):
     def after_task(self, ctx: TaskContext) -> None:
         """Keep up to `memory_per_task` samples of every task in this stage's data."""
         g = torch.Generator().manual_seed(4000 + ctx.stage)
-        kept = [ctx.data.for_task(t).random_subset(self.config.memory_per_task, g)
-                for t in ctx.data.task_names]
-        self.memory = TrainingData.concat(([self.memory] if self.memory is not None else []) + kept)
+        kept = ctx.data.per_task_subset(self.config.memory_per_task, g)
+        self.memory = kept if self.memory is None else TrainingData.concat([self.memory, kept])
 
     def state_dict(self):
         return {"memory": self.memory}

@@ -40,9 +40,8 @@ class ExperienceReplay(Method):
     def after_task(self, ctx: TaskContext) -> None:
         """Keep up to `buffer_per_task` samples of every task in this stage's data."""
         g = torch.Generator().manual_seed(1000 + ctx.stage)
-        kept = [ctx.data.for_task(t).random_subset(self.config.buffer_per_task, g)
-                for t in ctx.data.task_names]
-        self.buffer = TrainingData.concat(([self.buffer] if self.buffer is not None else []) + kept)
+        kept = ctx.data.per_task_subset(self.config.buffer_per_task, g)
+        self.buffer = kept if self.buffer is None else TrainingData.concat([self.buffer, kept])
 
     def state_dict(self):
         return {"buffer": self.buffer}
