@@ -60,6 +60,10 @@ class BenchConfig:
     torch_threads: int = 1  # intra-op threads per process; small CPU batches are slower with more
     eval_workers: int = 0  # evaluation processes; 0 means one per core
     eval_envs_per_task: int = 2  # simulators per task and worker (memory against batching)
+    # a stage's evaluation episodes are split into this many interleaved shares, each rolled out
+    # in its own lockstep batch; fixed per run, so results never depend on how many workers (or
+    # which executor) ran them. At most this many evaluation workers per job have work.
+    eval_shards: int = 2
     learning_curve_every: int = 0  # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
     executor: str = "local"  # where a comparison's jobs run: serial, local (processes) or ray
     jobs: int = 0  # jobs at once; 0: as many as the cores allow given each job's workers
@@ -86,7 +90,8 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "heldout_demos_per_task", "eval_episodes", "max_episode_steps", "foundation_steps",
     "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras", "image_size",
     "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress", "torch_threads",
-    "eval_workers", "eval_envs_per_task", "executor", "jobs", "policy", "device", "compile"})
+    "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs", "policy", "device",
+    "compile"})
 
 EXECUTORS = ("serial", "local", "ray")
 
@@ -259,6 +264,8 @@ def resolve(args: list[str]) -> BenchConfig:
             cfg.method_params[key.removeprefix("method.")] = value
     if cfg.seeds < 1:
         raise RetainError(f"bad value {cfg.seeds} for seeds: expected at least 1")
+    if cfg.eval_shards < 1:
+        raise RetainError(f"bad value {cfg.eval_shards} for eval_shards: expected at least 1")
     if cfg.executor not in EXECUTORS:
         raise RetainError(f"unknown executor {cfg.executor!r}; valid: {', '.join(EXECUTORS)}")
     if cfg.jobs < 0:

@@ -2,15 +2,17 @@
 
 Episodes run in lockstep, so the policy predicts one batch of action chunks for all episodes
 that need a new chunk (across tasks: the instruction is per row). Each episode's sampling noise
-comes from its own generator, seeded by the episode, so results do not depend on how episodes
-are batched or split across worker processes.
+comes from its own generator, seeded by the episode. A matrix product's last bits can still
+depend on the batch's size, so on the CPU the episodes are split into a fixed number of
+interleaved shards (`EvalSettings.shards`, the config's `eval_shards`), each rolled out in its
+own lockstep: the batch composition of every policy call then depends on the run's settings
+only, never on how many workers (or which executor) ran the shards.
 
 With several worker processes there are two layouts, chosen by where the policy lives:
 
 - per-worker policies (a policy on the CPU): each worker holds simulators and a copy of the
-  policy, and rolls out an interleaved share of the episodes. The CPU default, because it keeps
-  CPU results bit-identical to earlier releases: a matrix product's last bits can depend on the
-  batch's size, so the batch composition of every policy call stays as it was.
+  policy, and rolls out whole shards. The CPU default; with one worker the same shards run one
+  after another in this process, with the same results.
 - one central policy (a policy on an accelerator): the workers only own simulators (`EnvWorkers`)
   and reset or step them on command, while this process runs the lockstep loop and calls
   `policy.sample_actions` once for every slot that needs a chunk, on the device. New episodes
@@ -44,6 +46,7 @@ class EvalSettings:
     cameras: bool = False
     image_size: int = 84
     envs_per_task: int = 2  # simulators per task and worker; their episodes run one after another
+    shards: int = 2  # interleaved shares of the episodes, each its own lockstep (on the CPU)
 
 
 @dataclass(frozen=True)
@@ -199,6 +202,12 @@ def evaluation_episodes(suite: Suite, tasks: list[str], n: int, max_episode_step
             for t in tasks for key in suite.episode_keys(t, "eval", n)]
 
 
+def shard(episodes: list[EvalEpisode], n: int) -> list[list[EvalEpisode]]:
+    """The episodes in `n` interleaved shares (episode i in share i mod n), empty ones dropped:
+    every share holds about 1/n of each task's episodes."""
+    return [share for share in (episodes[i::n] for i in range(n)) if share]
+
+
 def group_by_task(episodes: list[EvalEpisode], outcomes: list[tuple[bool, int]]
                   ) -> dict[str, TaskEvaluation]:
     by_task: dict[str, list[tuple[bool, int]]] = {}
@@ -289,8 +298,8 @@ class Evaluator:
 
     With one worker, everything runs here. With more, simulators live in worker processes,
     started once and kept between stages, in one of two ways (see the module docstring):
-    per-worker policies (each worker gets the weights and an interleaved share of the episodes;
-    the default for a policy on the CPU) or one central policy (workers only step simulators;
+    per-worker policies (each worker gets the weights and whole shards of the episodes; the
+    default for a policy on the CPU) or one central policy (workers only step simulators;
     the default for a policy on an accelerator). `central_policy` overrides the choice.
     """
 
@@ -307,14 +316,19 @@ class Evaluator:
         episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes,
                                        self.settings.max_episode_steps)
         layout = self.layout(policy)
-        if layout == "in-process":
-            outcomes = rollout(policy, episodes, instructions, self.settings, noise_seed,
-                               self._local, align_chunks=policy_device(policy).type != "cpu")
-        elif layout == "central":
+        on_cpu = policy_device(policy).type == "cpu"
+        if layout == "central":
             outcomes = self._central_rollout(policy, episodes, instructions, noise_seed)
+            return group_by_task(episodes, outcomes)
+        # an accelerator's policy rolls everything out in one batch (its numerics differ anyway)
+        shards = shard(episodes, self.settings.shards) if on_cpu else [episodes]
+        if layout == "in-process":
+            results = [rollout(policy, share, instructions, self.settings, noise_seed,
+                               self._local, align_chunks=not on_cpu) for share in shards]
         else:
-            outcomes = self._per_worker_rollout(policy, episodes, instructions, noise_seed)
-        return group_by_task(episodes, outcomes)
+            results = self._per_worker_rollout(policy, shards, instructions, noise_seed)
+        outcome = {ep: out for share, outs in zip(shards, results) for ep, out in zip(share, outs)}
+        return group_by_task(episodes, [outcome[ep] for ep in episodes])
 
     def layout(self, policy) -> str:
         """Where `policy` would be rolled out: "in-process", "per-worker" or "central"."""
@@ -333,22 +347,21 @@ class Evaluator:
                         self._env_workers.open, self.settings.envs_per_task * self.workers,
                         align_chunks=True)
 
-    def _per_worker_rollout(self, policy, episodes, instructions, noise_seed) -> list[tuple[bool, int]]:
+    def _per_worker_rollout(self, policy, shards, instructions, noise_seed
+                            ) -> list[list[tuple[bool, int]]]:
+        """Each shard's outcomes, the shards spread over the worker processes."""
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"),
+            workers = min(self.workers, self.settings.shards)  # more would have no shard to run
+            self._pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
                                              initializer=_init_worker,
                                              initargs=(self.suite.name, self.settings,
                                                        self.torch_threads))
-        shares = [s for s in (episodes[i::self.workers] for i in range(self.workers)) if s]
         # a copy: sending tensors to workers moves their storage to shared memory, and during a
         # learning-curve evaluation the parameters are views into the trainer's flat buffer
         weights = {k: v.detach().clone() for k, v in policy.state_dict().items()}
         futures = [self._pool.submit(_worker_rollout, policy.config, weights, share, instructions,
-                                     noise_seed) for share in shares]
-        outcomes: dict[EvalEpisode, tuple[bool, int]] = {}
-        for share, future in zip(shares, futures):
-            outcomes.update(zip(share, future.result()))
-        return [outcomes[ep] for ep in episodes]
+                                     noise_seed) for share in shards]
+        return [future.result() for future in futures]
 
     def close(self) -> None:
         if self._pool is not None:

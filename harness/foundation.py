@@ -72,7 +72,8 @@ def foundation_key(cfg: BenchConfig, suite: Suite, seed: int) -> str:
 
 def stage0_key(cfg: BenchConfig, suite: Suite) -> str:
     tasks = cfg.foundation_tasks + cfg.stream_tasks
-    return _hash({"eval": [cfg.eval_episodes, cfg.max_episode_steps, cfg.n_action_steps],
+    evaluation = [cfg.eval_episodes, cfg.max_episode_steps, cfg.n_action_steps, cfg.eval_shards]
+    return _hash({"eval": evaluation,
                   "heldout": [demo_spec(cfg, suite, t, "heldout").key() for t in tasks]})
 
 

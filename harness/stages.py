@@ -37,7 +37,8 @@ class StageRecord:
 def eval_settings(cfg: BenchConfig) -> EvalSettings:
     return EvalSettings(episodes=cfg.eval_episodes, max_episode_steps=cfg.max_episode_steps,
                         n_action_steps=cfg.n_action_steps, cameras=cfg.cameras,
-                        image_size=cfg.image_size, envs_per_task=cfg.eval_envs_per_task)
+                        image_size=cfg.image_size, envs_per_task=cfg.eval_envs_per_task,
+                        shards=cfg.eval_shards)
 
 
 def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: BenchmarkData, seed: int,

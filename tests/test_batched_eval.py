@@ -1,8 +1,8 @@
 """Batched evaluation: simulators in worker processes and one central policy give the same
-per-episode outcomes as the in-process rollout, and chunk-aligned starts change nothing but the
-number of policy calls."""
+per-episode outcomes as the in-process rollout, chunk-aligned starts change nothing but the
+number of policy calls, and on the CPU the outcomes do not depend on the number of workers."""
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from types import SimpleNamespace
 
 import pytest
@@ -93,3 +93,43 @@ def test_a_worker_error_is_raised_in_the_evaluator_naming_its_cause():
     with Evaluator(get_suite("metaworld"), SETTINGS, workers=2, central_policy=True) as evaluator:
         with pytest.raises(RuntimeError, match="unknown metaworld task 'no-such-task'"):
             evaluator.evaluate(ReachController(), ["no-such-task"], {"no-such-task": None}, 0)
+
+
+@dataclass(frozen=True)
+class BatchSizeReachConfig:
+    chunk_size: int = 4
+    action_dim: int = 4
+
+
+class BatchSizeReach(ReachController):
+    """A reach controller whose gain depends on how many episodes share its call: an exaggerated
+    stand-in for a matrix product whose last bits depend on the batch's size. Its outcomes are
+    the same in two evaluations only if every call saw the same batch."""
+
+    Config = BatchSizeReachConfig
+
+    def __init__(self, config: BatchSizeReachConfig | None = None):
+        super().__init__()
+        self.config = config or BatchSizeReachConfig()
+
+    def sample_actions(self, batch, noise):
+        state = batch["state"]
+        move = (20.0 / len(state) * (state[:, 36:39] - state[:, :3])).clamp(-1, 1)
+        action = torch.cat([move, torch.zeros(len(state), 1)], dim=1)
+        return action[:, None].expand(-1, self.config.chunk_size, -1) + 0.05 * noise
+
+
+def test_cpu_outcomes_do_not_depend_on_the_number_of_evaluation_workers():
+    """Issue 14's executors give a job 1 or 2 evaluation workers depending on how many jobs share
+    the machine; the fixed shards keep every policy call's batch, so the results are identical."""
+    settings = replace(SETTINGS, episodes=6, max_episode_steps=60, shards=3)
+    suite = get_suite("metaworld")
+    outcomes = {}
+    for workers in (1, 2, 3):
+        with Evaluator(suite, settings, workers=workers) as evaluator:
+            outcomes[workers] = evaluator.evaluate(BatchSizeReach(), TASKS, _instructions(), 5)
+    assert outcomes[1] == outcomes[2] == outcomes[3]
+    assert sum(outcomes[1]["reach-v3"].successes) >= 3
+    with Evaluator(suite, replace(settings, shards=1), workers=1) as evaluator:  # other batches:
+        other = evaluator.evaluate(BatchSizeReach(), TASKS, _instructions(), 5)  # other outcomes
+    assert other["reach-v3"].steps != outcomes[1]["reach-v3"].steps

@@ -22,8 +22,7 @@ RUNS = [(label, seed) for label in ("sft", "er") for seed in (0, 1)]
 
 def _cmd(results, cache, *args):
     return [sys.executable, "-m", "harness", "bench", "PROFILE=tiny", "METHOD=sft,er", "SEEDS=2",
-            f"results_dir={results}", f"cache_dir={cache}", "progress=false", "eval_workers=1",
-            *args]
+            f"results_dir={results}", f"cache_dir={cache}", "progress=false", *args]
 
 
 def _env():
@@ -53,7 +52,8 @@ def _runs(results):
 @pytest.fixture(scope="module")
 def serial(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("serial")
-    _run(_cmd(tmp / "results", tmp / "cache", "executor=serial"))
+    # two evaluation workers here, one per job elsewhere: the results must not depend on it
+    _run(_cmd(tmp / "results", tmp / "cache", "executor=serial", "eval_workers=2"))
     return tmp, _outputs(tmp / "results")
 
 
@@ -61,7 +61,8 @@ def test_local_processes_match_serial(tmp_path, serial):
     # the serial run's demos, not its foundations: the worker processes build those too
     for part in ("demos", "instructions"):
         shutil.copytree(serial[0] / "cache" / part, tmp_path / "cache" / part)
-    out = _run(_cmd(tmp_path / "results", tmp_path / "cache", "executor=local", "jobs=2"))
+    out = _run(_cmd(tmp_path / "results", tmp_path / "cache", "executor=local", "jobs=2",
+                    "eval_workers=1"))
     assert "2 at once, 1 evaluation worker each" in out
     assert _outputs(tmp_path / "results") == serial[1]
     done = re.findall(r"\[retain\] (\d)/4 (\w+) seed (\d): foundation success .* left\)", out)
@@ -74,7 +75,7 @@ def test_local_processes_match_serial(tmp_path, serial):
 def test_ray_worker_killed_mid_stage_is_retried_and_continues(tmp_path, serial):
     """Kill the Ray worker running a job (its pid from Ray's own log prefix) once the job's
     stage 1 is done: Ray runs the task again, it resumes after stage 1, results are the same."""
-    cmd = _cmd(tmp_path / "results", serial[0] / "cache", "executor=ray")
+    cmd = _cmd(tmp_path / "results", serial[0] / "cache", "executor=ray", "eval_workers=1")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             cwd=ROOT, env=_env())
     killed, lines = None, []
@@ -95,7 +96,8 @@ def test_ray_worker_killed_mid_stage_is_retried_and_continues(tmp_path, serial):
 
 
 def test_killed_comparison_rerun_leaves_one_finished_run_per_job(tmp_path, serial):
-    cmd = _cmd(tmp_path / "results", serial[0] / "cache", "executor=local", "jobs=2")
+    cmd = _cmd(tmp_path / "results", serial[0] / "cache", "executor=local", "jobs=2",
+               "eval_workers=1")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             cwd=ROOT, env=_env())
     for line in proc.stdout:
