@@ -55,9 +55,9 @@ bench-train: $(STAMP)
 bench-methods: $(STAMP)
 	$(PY) -m harness.perf methods
 
-# make bench-eval [WORKERS=2] [cameras=true image_size=128] [device=cuda]
+# make bench-eval [BENCH=libero-quick] [WORKERS=2] [cameras=true image_size=128] [device=cuda]
 bench-eval: $(STAMP)
-	$(PY) -m harness.perf eval $(or $(WORKERS),2) \
+	$(PY) -m harness.perf eval $(or $(WORKERS),2) --bench $(or $(BENCH),mw-quick) \
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
 		$(if $(device),--device $(device))
 

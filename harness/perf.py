@@ -245,48 +245,54 @@ def _raw_expert_share(suite_name: str, episodes, max_steps: int, cameras: bool =
         _RAW_ENVS[key] = EnvCache(get_suite(suite_name), EvalSettings(
             len(episodes), max_steps, n_action_steps=1, cameras=cameras, image_size=image_size))
     envs = _RAW_ENVS[key]
-    return sum(run_expert_episode(envs.for_task(ep.task, 1)[0], ep.seed, max_steps).steps
-               for ep in episodes)
+    return sum(run_expert_episode(envs.for_task(ep.task, 1)[0], ep.seed,
+                                  min(max_steps, ep.max_steps)).steps for ep in episodes)
 
 
 def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, cameras: bool = False,
-               image_size: int = 84, device: str = "cpu", central_policy: bool | None = None) -> None:
+               image_size: int = 84, device: str = "cpu", central_policy: bool | None = None,
+               bench: str = "mw-quick") -> None:
     """Evaluation env steps/s against raw expert stepping (with the same rendering: raw
-    step-plus-render throughput when cameras are on); 1 -> 2 worker speed-up. A policy on an
-    accelerator is evaluated with one central policy and simulators in the workers."""
+    step-plus-render throughput when cameras are on) on a benchmark's tasks; 1 -> 2 worker
+    speed-up. A policy on an accelerator is evaluated with one central policy and simulators in
+    the workers. A suite with its own step limits (LIBERO) runs each task at its own."""
     from suites import get_suite
     from suites.base import CAMERA_KEYS
 
-    suite = get_suite("metaworld")
-    benchmark = load_benchmark("mw-quick")
-    mw_quick_tasks = benchmark.foundation_tasks + benchmark.stream_tasks
-    eps = evaluation_episodes(suite, mw_quick_tasks, episodes, max_steps)
+    benchmark = load_benchmark(bench)
+    suite = get_suite(benchmark.suite)
+    tasks = benchmark.foundation_tasks + benchmark.stream_tasks
+    eps = evaluation_episodes(suite, tasks, episodes, max_steps)
     settings = EvalSettings(episodes, max_steps, n_action_steps=4, cameras=cameras,
-                            image_size=image_size)
+                            image_size=image_size, envs_per_task=benchmark.eval_envs_per_task,
+                            shards=max(workers, benchmark.eval_shards))
     ctx = get_context("spawn")
     render = [cameras] * workers, [image_size] * workers
+    suites = [benchmark.suite] * workers
     with ProcessPoolExecutor(workers, mp_context=ctx) as pool:  # warm: imports and env builds
         shares = [eps[i::workers] for i in range(workers)]
-        list(pool.map(_raw_expert_share, ["metaworld"] * workers, shares, [1] * workers, *render))
+        list(pool.map(_raw_expert_share, suites, shares, [1] * workers, *render))
         start = time.perf_counter()
-        raw_steps = sum(pool.map(_raw_expert_share, ["metaworld"] * workers, shares,
-                                 [max_steps] * workers, *render))
+        raw_steps = sum(pool.map(_raw_expert_share, suites, shares, [max_steps] * workers, *render))
         raw_time = time.perf_counter() - start
     image_keys = CAMERA_KEYS if cameras else ()
-    policy = _policy("default", image_keys=image_keys, image_size=image_size).to(resolve_device(device))
-    instructions = {t: torch.randn(384).numpy() for t in mw_quick_tasks}
+    policy = _policy("default", image_keys=image_keys, image_size=image_size,
+                     state_dim=suite.state_dim, action_dim=suite.action_dim
+                     ).to(resolve_device(device))
+    instructions = {t: torch.randn(384).numpy() for t in tasks}
     rates, layouts = {}, {}
     for n in (1, workers):
         with Evaluator(suite, settings, workers=n, central_policy=central_policy) as evaluator:
             layouts[n] = evaluator.layout(policy)
-            evaluator.evaluate(policy, mw_quick_tasks, instructions, noise_seed=0)  # warm
+            evaluator.evaluate(policy, tasks, instructions, noise_seed=0)  # warm
             start = time.perf_counter()
-            results = evaluator.evaluate(policy, mw_quick_tasks, instructions, noise_seed=0)
+            results = evaluator.evaluate(policy, tasks, instructions, noise_seed=0)
             elapsed = time.perf_counter() - start
         rates[n] = (sum(r.steps for r in results.values()) / elapsed, elapsed)
     raw_rate = raw_steps / raw_time
     images = f"two {image_size}x{image_size} cameras" if cameras else "no cameras"
-    print(f"evaluation on mw-quick's 9 tasks x {episodes} episodes, <= {max_steps} steps, {images} "
+    limit = "each task's own step limit" if suite.max_steps(tasks[0]) else f"<= {max_steps} steps"
+    print(f"evaluation on {bench}'s {len(tasks)} tasks x {episodes} episodes, {limit}, {images} "
           f"(untrained default policy on {policy_device_name(policy)}, so episodes run long)")
     print("| what | processes | layout | env steps/s | wall s |")
     print("|---|---|---|---|---|")
@@ -308,6 +314,7 @@ def _eval_args(argv: list[str]):
 
     parser = argparse.ArgumentParser(prog="python -m harness.perf eval")
     parser.add_argument("workers", nargs="?", type=int, default=2)
+    parser.add_argument("--bench", default="mw-quick", help="the benchmark whose tasks to evaluate")
     parser.add_argument("--cameras", action="store_true", help="render and feed both cameras")
     parser.add_argument("--image-size", type=int, default=128)
     parser.add_argument("--episodes", type=int, default=10, help="per task")
@@ -342,7 +349,7 @@ def main(argv: list[str]) -> int:
         args = _eval_args(argv[1:])
         central = {"auto": None, "per-worker": False, "central": True}[args.layout]
         bench_eval(args.workers, args.episodes, args.max_steps, args.cameras, args.image_size,
-                   args.device, central)
+                   args.device, central, args.bench)
     elif what == "_memory":
         print(json.dumps(_method_memory(argv[1], steps=30)))
     else:
