@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from harness.config import NOT_IN_RUN_KEY, run_label
+from harness.config import NOT_IN_RUN_KEY, QUIET_DEFAULTS, run_label
 from harness.report.runs import RunRecord
 
 # config fields that do not change what a run measures (the run key's exclusions in
@@ -63,6 +63,9 @@ def settings(run: RunRecord) -> dict[str, str]:
             out[key.removeprefix("config.")] = value
         elif key.startswith("method."):
             out[key.removeprefix("method.")] = value
+    for key, default in QUIET_DEFAULTS.items():  # logged at its default, or from before it existed
+        if out.get(key, str(default)) == str(default):
+            out.pop(key, None)
     return out
 
 

@@ -211,8 +211,8 @@ class LiberoTaskEnv(TaskEnv):
     def spatial_stacks(self) -> dict[str, list[str]]:
         """Object on the workspace -> it and the objects its init puts on top of it."""
         problem = self.env.env
-        on = [(obj, where) for pred, obj, where, *_ in problem.parsed_problem["initial_state"]
-              if pred.lower() == "on" and obj in problem.objects_dict]
+        on = [(fact[1], fact[2]) for fact in problem.parsed_problem["initial_state"]
+              if len(fact) == 3 and fact[0].lower() == "on" and fact[1] in problem.objects_dict]
         stacks = {obj: [obj] for obj, where in on
                   if where.startswith(problem.workspace_name + "_")}
         for obj, where in on:
