@@ -190,7 +190,7 @@ class LiberoTaskEnv(TaskEnv):
         rng = np.random.default_rng(key)
         sim = self.env.sim
         for base, stack in self.spatial_stacks().items():
-            addresses = [self._qpos_address(name) for name in stack]
+            addresses = [self.qpos_address(name) for name in stack]
             low, high = self.demo_ranges()[base]
             touching = self._touching(state, stack)
             for _ in range(MAX_DRAWS):
@@ -226,13 +226,13 @@ class LiberoTaskEnv(TaskEnv):
             states = init_states(self.task.name)
             self._demo_ranges = {}
             for name in self.objects:
-                a = self._qpos_address(name)
+                a = self.qpos_address(name)
                 xy = states[:, a:a + 2]
                 self._demo_ranges[name] = (xy.min(axis=0) - DEMO_RANGE_MARGIN,
                                            xy.max(axis=0) + DEMO_RANGE_MARGIN)
         return self._demo_ranges
 
-    def _qpos_address(self, name: str) -> int:
+    def qpos_address(self, name: str) -> int:
         """Where the object's free-joint x sits in a flattened state ([time, qpos, qvel])."""
         joint = self.env.env.objects_dict[name].joints[-1]
         return 1 + self.env.sim.model.get_joint_qpos_addr(joint)[0]
