@@ -205,6 +205,7 @@ def test_report_shows_the_spatial_columns_and_figure(two_tiny_runs):
                      "metrics.json").read_text())["metrics"]
     assert float(rows["sft[spatial_episodes=2]"]["spatial_retention_mean"]) == \
         pytest.approx(on["spatial_retention"])
-    assert rows["sft"]["spatial_retention_mean"] == ""  # n/a: that run had no probe
+    # the run without the probe: its own row, n/a in the spatial columns
+    assert rows["sft[spatial_episodes=0]"]["spatial_retention_mean"] == ""
     markdown = (two_tiny_runs / "mw-quick-tiny" / "report" / "summary.md").read_text()
     assert "spatial retention ↑" in markdown

@@ -72,7 +72,7 @@ def settings(run: RunRecord) -> dict[str, str]:
 def label_of(run: RunRecord, varying: list[str]) -> str:
     """The sweep point, then the settings that tell this run from others of its method and point."""
     s = settings(run)
-    extra = ",".join(f"{k}={s.get(k, '-')}" for k in varying)
+    extra = ",".join(f"{k}={s.get(k, QUIET_DEFAULTS.get(k, '-'))}" for k in varying)
     return run_label(run.method, " ".join(part for part in (run.sweep_point, extra) if part))
 
 

@@ -269,6 +269,8 @@ def spatial_retention(path: Path, summaries: list[RowSummary], benchmark: str) -
         if start[0].n and start[1].n:
             ax.annotate("", (x.mean, y.mean), xytext=(start[0].mean, start[1].mean),
                         arrowprops={"arrowstyle": "->", "color": color[s.label], "alpha": 0.4})
+            ax.plot(start[0].mean, start[1].mean, "x", color="black",
+                    label="stage 0 (the foundation)" if not xs else None)
             xs.append(start[0].mean)
             ys.append(start[1].mean)
         xs += [v for v in (x.mean, x.low, x.high) if v is not None]
