@@ -83,7 +83,11 @@ def test_metaworld_probe_states_lie_beyond_every_demo_and_eval_state(task):
     env.close()
 
 
-def test_a_suite_without_a_probe_says_so():
+def test_a_suite_without_a_probe_says_so_before_any_work():
+    from harness.cli import plan
+
+    with pytest.raises(RetainError, match="suite 'bimanual' has no spatial probe"):
+        plan(["BENCH=bimanual-quick", "spatial_episodes=2"])
     bimanual = get_suite("bimanual")
     with pytest.raises(RetainError, match="no spatial probe"):
         bimanual.episode_keys(bimanual.task_names()[0], "spatial", 2)
