@@ -247,7 +247,8 @@ class LiberoTaskEnv(TaskEnv):
         ours = {model.body_rootid[model.body(objects[n].root_body).id] for n in stack}
         out = []
         for contact in data.contact[:data.ncon]:
-            roots = [model.body_rootid[model.geom_bodyid[g]] for g in (contact.geom1, contact.geom2)]
+            roots = [model.body_rootid[model.geom_bodyid[geom]]
+                     for geom in (contact.geom1, contact.geom2)]
             if (roots[0] in ours) != (roots[1] in ours):
                 out.append((roots[1] if roots[0] in ours else roots[0], -contact.dist))
         return out
