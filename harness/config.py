@@ -83,11 +83,11 @@ BENCH_KEYS = frozenset(f.name for f in fields(BenchConfig)) - {"method_params", 
 # settings of what every sweep point shares (the demos, the foundation, the evaluator), so a
 # GRID cannot vary them: the points would record a value that was never used
 SHARED_BY_SWEEP_POINTS = frozenset({
-    "name", "suite", "foundation_tasks", "stream_tasks", "demos_per_task",
-    "heldout_demos_per_task", "eval_episodes", "spatial_episodes", "max_episode_steps",
-    "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
-    "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
-    "torch_threads", "eval_workers", "eval_envs_per_task", "executor", "jobs", "policy", "device", "compile"})
+    "name", "suite", "foundation_tasks", "stream_tasks", "demos_per_task", "spatial_episodes",
+    "heldout_demos_per_task", "eval_episodes", "max_episode_steps", "foundation_steps",
+    "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras", "image_size",
+    "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress", "torch_threads",
+    "eval_workers", "eval_envs_per_task", "executor", "jobs", "policy", "device", "compile"})
 
 EXECUTORS = ("serial", "local", "ray")
 

@@ -188,7 +188,6 @@ class LiberoTaskEnv(TaskEnv):
         index = key & ((1 << INIT_INDEX_BITS) - 1)
         state = np.array(init_states(self.task.name)[index % NUM_INIT_STATES], dtype=np.float64)
         rng = np.random.default_rng(key)
-        sim = self.env.sim
         for base, stack in self.spatial_stacks().items():
             addresses = [self.qpos_address(name) for name in stack]
             low, high = self.demo_ranges()[base]
@@ -205,7 +204,6 @@ class LiberoTaskEnv(TaskEnv):
                 if not self._sinks(trial, stack, touching):
                     state = trial
                     break
-        sim.set_state_from_flattened(state)
         return state
 
     def spatial_stacks(self) -> dict[str, list[str]]:
