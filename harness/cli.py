@@ -83,6 +83,8 @@ def plan(args: list[str]) -> Plan:
             suite.check_task(task)
     except UnknownName as exc:
         raise RetainError(str(exc)) from None
+    if cfg.spatial_episodes > 0:
+        suite.check_spatial_probe()  # a suite without widened initial states says so now
     both = sorted(set(cfg.foundation_tasks) & set(cfg.stream_tasks))
     if both:
         raise RetainError(f"task {both[0]!r} is both a foundation and a stream task in {cfg.name}")

@@ -33,6 +33,7 @@ class BenchConfig:
     demos_per_task: int = 50
     heldout_demos_per_task: int = 5
     eval_episodes: int = 20
+    spatial_episodes: int = 0  # per task and stage, from widened initial states; 0: probe off
     max_episode_steps: int = 200
     foundation_steps: int = 4000
     steps_per_task: int = 1500
@@ -86,7 +87,7 @@ BENCH_KEYS = frozenset(f.name for f in fields(BenchConfig)) - {"method_params", 
 # settings of what every sweep point shares (the demos, the foundation, the evaluator), so a
 # GRID cannot vary them: the points would record a value that was never used
 SHARED_BY_SWEEP_POINTS = frozenset({
-    "name", "suite", "foundation_tasks", "stream_tasks", "demos_per_task",
+    "name", "suite", "foundation_tasks", "stream_tasks", "demos_per_task", "spatial_episodes",
     "heldout_demos_per_task", "eval_episodes", "max_episode_steps", "foundation_steps",
     "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras", "image_size",
     "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress", "torch_threads",
@@ -99,6 +100,17 @@ EXECUTORS = ("serial", "local", "ray")
 # torch_threads stays in: the summation order of a matrix product depends on it
 NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
                   "eval_envs_per_task", "results_dir", "cache_dir", "executor", "jobs")
+
+# settings added after results were recorded, at the value that changes nothing: there a run
+# key leaves them out (earlier checkpoints still resume) and a report reads a run that never
+# logged them as having it (its rows keep their labels)
+QUIET_DEFAULTS: dict[str, Any] = {"spatial_episodes": 0, "eval_shards": 2}
+
+
+def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:
+    """The settings a run's results depend on (what its run key hashes)."""
+    return {k: v for k, v in cfg.as_dict().items()
+            if k not in NOT_IN_RUN_KEY and not (k in QUIET_DEFAULTS and v == QUIET_DEFAULTS[k])}
 
 
 def benchmark_names() -> list[str]:
@@ -134,6 +146,7 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
         cfg.foundation_tasks = cfg.foundation_tasks[:2]
         cfg.stream_tasks = cfg.stream_tasks[:2]
         cfg.demos_per_task, cfg.heldout_demos_per_task, cfg.eval_episodes = 3, 1, 2
+        cfg.spatial_episodes = min(cfg.spatial_episodes, 2)
         cfg.max_episode_steps = min(cfg.max_episode_steps, 100)
         cfg.foundation_steps, cfg.steps_per_task, cfg.batch_size = 30, 10, 32
         cfg.policy_size = "tiny"
@@ -268,6 +281,9 @@ def resolve(args: list[str]) -> BenchConfig:
         raise RetainError(f"bad value {cfg.eval_shards} for eval_shards: expected at least 1")
     if cfg.executor not in EXECUTORS:
         raise RetainError(f"unknown executor {cfg.executor!r}; valid: {', '.join(EXECUTORS)}")
+    if cfg.spatial_episodes < 0:
+        raise RetainError(f"bad value {cfg.spatial_episodes} for spatial_episodes: expected 0 "
+                          "(no spatial probe) or more")
     if cfg.jobs < 0:
         raise RetainError(f"bad value {cfg.jobs} for jobs: expected 0 (as many as the cores "
                           "allow) or more")

@@ -47,12 +47,20 @@ class EvalSettings:
     image_size: int = 84
     envs_per_task: int = 2  # simulators per task and worker; their episodes run one after another
     shards: int = 2  # interleaved shares of the episodes, each its own lockstep (on the CPU)
+    spatial_episodes: int = 0  # per task, of the spatial probe's split (widened initial states)
+
+    def episodes_of(self, split: str) -> int:
+        """Episodes per task of a split: "eval" (the success matrix) or "spatial" (the probe)."""
+        if split not in ("eval", "spatial"):
+            raise ValueError(f"unknown evaluation split {split!r}; valid: eval, spatial")
+        return self.episodes if split == "eval" else self.spatial_episodes
 
 
 @dataclass(frozen=True)
 class EvalEpisode:
     task: str
-    seed: int  # the suite's reset key: a seed, or for LIBERO the fixed init state's index
+    seed: int  # the suite's reset key: a seed, for LIBERO the fixed init state's index, or a
+    # spatial probe's key (suites.base.SPATIAL_KEYS)
     max_steps: int  # the task's step limit (the suite's own where it has one, e.g. LIBERO's)
 
 
@@ -196,10 +204,10 @@ def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndar
                     lambda tasks: LocalSimulators(envs, tasks), settings.envs_per_task, align_chunks)
 
 
-def evaluation_episodes(suite: Suite, tasks: list[str], n: int, max_episode_steps: int
-                        ) -> list[EvalEpisode]:
+def evaluation_episodes(suite: Suite, tasks: list[str], n: int, max_episode_steps: int,
+                        split: str = "eval") -> list[EvalEpisode]:
     return [EvalEpisode(t, key, suite.step_limit(t, max_episode_steps))
-            for t in tasks for key in suite.episode_keys(t, "eval", n)]
+            for t in tasks for key in suite.episode_keys(t, split, n)]
 
 
 def shard(episodes: list[EvalEpisode], n: int) -> list[list[EvalEpisode]]:
@@ -312,9 +320,10 @@ class Evaluator:
         self._env_workers: EnvWorkers | None = None
 
     def evaluate(self, policy, tasks: list[str], instructions: dict[str, np.ndarray],
-                 noise_seed: int) -> dict[str, TaskEvaluation]:
-        episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes,
-                                       self.settings.max_episode_steps)
+                 noise_seed: int, split: str = "eval") -> dict[str, TaskEvaluation]:
+        """Per task, its episodes of `split`: "eval", or "spatial" (the spatial probe)."""
+        episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes_of(split),
+                                       self.settings.max_episode_steps, split)
         layout = self.layout(policy)
         on_cpu = policy_device(policy).type == "cpu"
         if layout == "central":

@@ -1,4 +1,5 @@
-"""Continual-learning metrics from the success matrix R[stage, task] (definitions: DESIGN.md).
+"""Continual-learning metrics from the success matrix R[stage, task] (definitions: DESIGN.md),
+and the spatial probe's from its own matrix S[stage, task], defined the same way.
 
 R has k+1 rows (stage 0 = after the foundation, stage i = after stream task s_i) and one column
 per task; `foundation` and `stream` name the column indices of the foundation tasks F and the
@@ -72,6 +73,27 @@ def core_metrics(R: np.ndarray, foundation: list[int], stream: list[int]) -> Cor
         forgetting=forgetting(R, stream),
         bwt=backward_transfer(R, stream),
     )
+
+
+@dataclass(frozen=True)
+class SpatialMetrics:
+    """The spatial probe's counterparts of CoreMetrics, from the spatial success matrix S
+    (success from widened initial states, beyond the demos' range) with the same definitions:
+    does fine-tuning keep what generalised beyond the demos (the paper's "spatial overfitting")?"""
+
+    spatial_foundation_success_stage0: float
+    spatial_retention: float  # foundation success on S at stage k
+    spatial_plasticity: float
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+def spatial_metrics(S: np.ndarray, foundation: list[int], stream: list[int]) -> SpatialMetrics:
+    fs = foundation_success(S, foundation)
+    return SpatialMetrics(spatial_foundation_success_stage0=float(fs[0]),
+                          spatial_retention=float(fs[-1]),
+                          spatial_plasticity=plasticity(S, stream))
 
 
 def offline_retention(heldout: np.ndarray, foundation: list[int]) -> np.ndarray:

@@ -79,6 +79,12 @@ def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, P
     write_text(paths["heldout_loss"], success_matrix_csv(result.tasks, stage_tasks,
                                                          result.heldout_matrix()))
     write_text(paths["updates_per_layer"], rows_csv(result.layer_rows))
+    S, spatial_path = result.spatial_success_matrix(), out / "spatial_success_matrix.csv"
+    if S is not None:  # the spatial probe's, when it is on
+        paths["spatial_success_matrix"] = spatial_path
+        write_text(spatial_path, success_matrix_csv(result.tasks, stage_tasks, S))
+    else:  # an earlier run's with the probe on would not describe this one
+        spatial_path.unlink(missing_ok=True)
     stages = [{"stage": s.stage, "trained_on": s.task, "train_loss": s.train_loss,
                "updates": s.updates, "updates_stage_over_stage": s.updates_stage,
                "curve_steps": s.curve_steps, "curve": s.curve} for s in result.stages]
@@ -95,12 +101,15 @@ HEADLINE = ["foundation_success_stage0", "retention", "retention_drop", "plastic
             "stream_final_success", "forgetting", "bwt", "offline_retention",
             "update_frac_changed_rho0.01", "update_relative_l2"]
 
+SPATIAL_HEADLINE = ["spatial_foundation_success_stage0", "spatial_retention", "spatial_plasticity"]
+
 
 def summary_table(results) -> str:
     """Markdown table: one row per (method, seed), the headline metrics as columns."""
-    header = "| method | seed | " + " | ".join(HEADLINE) + " |"
-    lines = [header, "|" + "---|" * (len(HEADLINE) + 2)]
+    columns = HEADLINE + [k for k in SPATIAL_HEADLINE if any(k in r.metrics for r in results)]
+    header = "| method | seed | " + " | ".join(columns) + " |"
+    lines = [header, "|" + "---|" * (len(columns) + 2)]
     for r in results:
-        cells = [f"{r.metrics.get(k, float('nan')):.3f}" for k in HEADLINE]
+        cells = [f"{r.metrics.get(k, float('nan')):.3f}" for k in columns]
         lines.append(f"| {r.method} | {r.seed} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -12,12 +12,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from harness.config import NOT_IN_RUN_KEY, BenchConfig, set_field
+from harness.config import BenchConfig, run_key_settings, set_field
 from harness.data import BenchmarkData
 from harness.errors import RetainError
 from harness.evaluation import Evaluator
 from harness.foundation import Foundation, build_policy
-from harness.metrics import CoreMetrics, core_metrics, libero_metrics, offline_retention
+from harness.metrics import (
+    CoreMetrics,
+    core_metrics,
+    libero_metrics,
+    offline_retention,
+    spatial_metrics,
+)
 from harness.seeding import derive_seed, generator
 from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
 from harness.trainer import TrainSettings, train_stage
@@ -39,6 +45,12 @@ class RunResult:
 
     def success_matrix(self) -> np.ndarray:
         return np.array([[s.success[t] for t in self.tasks] for s in self.stages])
+
+    def spatial_success_matrix(self) -> np.ndarray | None:
+        """S[stage, task]: success from the spatial probe's states; None when it was off."""
+        if not all(s.spatial_success for s in self.stages):
+            return None
+        return np.array([[s.spatial_success[t] for t in self.tasks] for s in self.stages])
 
     def heldout_matrix(self) -> np.ndarray:
         return np.array([[s.heldout_loss[t] for t in self.tasks] for s in self.stages])
@@ -149,7 +161,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
 
 def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> str:
     """Everything a stage checkpoint depends on; a checkpoint with another key is not resumed."""
-    settings = {k: v for k, v in cfg.as_dict().items() if k not in NOT_IN_RUN_KEY}
+    settings = run_key_settings(cfg)
     blob = json.dumps([settings, method.name, method.hyperparameters(), foundation_key],
                       sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
@@ -176,6 +188,9 @@ def summary_metrics(cfg: BenchConfig, result: RunResult) -> dict[str, float]:
     core: CoreMetrics = core_metrics(result.success_matrix(), foundation, stream)
     metrics = core.as_dict()
     metrics["offline_retention"] = float(offline_retention(result.heldout_matrix(), foundation)[-1])
+    S = result.spatial_success_matrix()
+    if S is not None:
+        metrics.update(spatial_metrics(S, foundation, stream).as_dict())
     if all(s.curve for s in result.stages[1:]):
         curves = [np.array(s.curve) for s in result.stages[1:]]
         metrics.update(libero_metrics(curves, result.success_matrix(), stream).as_dict())

@@ -29,6 +29,9 @@ class StageRecord:
     env_steps: int = 0
     curve_steps: list[int] = field(default_factory=list)  # learning curve of this stage's task:
     curve: list[float] = field(default_factory=list)  # success at those steps (0 and the end too)
+    # the spatial probe (empty when off): success from widened initial states, as above
+    spatial_success: dict[str, float] = field(default_factory=dict)
+    spatial_episodes: dict[str, list[bool]] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -38,12 +41,13 @@ def eval_settings(cfg: BenchConfig) -> EvalSettings:
     return EvalSettings(episodes=cfg.eval_episodes, max_episode_steps=cfg.max_episode_steps,
                         n_action_steps=cfg.n_action_steps, cameras=cfg.cameras,
                         image_size=cfg.image_size, envs_per_task=cfg.eval_envs_per_task,
-                        shards=cfg.eval_shards)
+                        shards=cfg.eval_shards, spatial_episodes=cfg.spatial_episodes)
 
 
 def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: BenchmarkData, seed: int,
                    stage: int, task: str, method: Method | None = None) -> StageRecord:
-    """Roll out every task (foundation and stream) and measure every held-out loss.
+    """Roll out every task (foundation and stream), also from the spatial probe's states when
+    it is on, and measure every held-out loss.
 
     A task-aware method (PackNet) is evaluated group by group inside its `evaluation_view`: the
     foundation tasks together, then each stream task; any other method in one call, as before.
@@ -52,12 +56,15 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
     noise_seed = derive_seed(seed, "eval")
     aware = method is not None and method.task_aware_eval
     groups = [cfg.foundation_tasks] + [[t] for t in cfg.stream_tasks] if aware else [tasks]
-    results, heldout = {}, {}
+    results, spatial, heldout = {}, {}, {}
     for group in (g for g in groups if g):
         view = (method.evaluation_view(policy, group[0], cfg.stream_tasks) if aware
                 else contextlib.nullcontext())
         with view:
             results.update(evaluator.evaluate(policy, group, data.instructions, noise_seed))
+            if cfg.spatial_episodes > 0:
+                spatial.update(evaluator.evaluate(policy, group, data.instructions, noise_seed,
+                                                  split="spatial"))
             heldout.update({t: heldout_loss(policy, data.heldout[t], derive_seed("heldout", t))
                             for t in group})
     return StageRecord(
@@ -65,7 +72,9 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
         success={t: results[t].success_rate for t in tasks},
         episodes={t: list(results[t].successes) for t in tasks},
         heldout_loss={t: heldout[t] for t in tasks},
-        env_steps=sum(results[t].steps for t in tasks),
+        env_steps=sum(r.steps for r in (*results.values(), *spatial.values())),
+        spatial_success={t: spatial[t].success_rate for t in tasks if t in spatial},
+        spatial_episodes={t: list(spatial[t].successes) for t in tasks if t in spatial},
     )
 
 

@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from harness.errors import RetainError
+
 Observation = dict[str, np.ndarray]
 """Observation keys: "state" (float32 vector: proprioception and object state) always; with
 cameras on, the `CAMERA_KEYS` images too (uint8 [S, S, 3], upright: row 0 is the top)."""
@@ -94,10 +96,23 @@ class Suite(ABC):
         """Part of the demo-cache key: bump when observations, experts or success change."""
         return "1"
 
+    spatial_probe_version: str = ""
+    """Names the suite's spatial probe (its widened initial states) and is part of the stage-0
+    cache key; "" when the suite has none."""
+
     def episode_keys(self, task: str, split: str, n: int) -> list[int]:
-        """The `reset` keys of a task's episodes of one split ("demo", "heldout", "eval"):
-        seeds by default; a suite with fixed initial states (LIBERO) maps them its own way."""
+        """The `reset` keys of a task's episodes of one split ("demo", "heldout", "eval",
+        "spatial"): seeds by default, spatial ones marked with SPATIAL_KEYS; a suite with fixed
+        initial states (LIBERO) maps them its own way."""
+        if split == "spatial":
+            self.check_spatial_probe()
+            return [SPATIAL_KEYS | seed for seed in episode_seeds(self.name, task, split, n)]
         return episode_seeds(self.name, task, split, n)
+
+    def check_spatial_probe(self) -> None:
+        if not self.spatial_probe_version:
+            raise RetainError(f"suite {self.name!r} has no spatial probe (spatial_episodes must "
+                              "be 0); suites with one: libero, metaworld")
 
     def max_steps(self, task: str) -> int | None:
         """The task's own episode step limit, part of the suite's protocol (LIBERO's per-suite
@@ -155,8 +170,19 @@ def run_expert_episode(env: TaskEnv, seed: int, max_steps: int, record: bool = F
     return episode
 
 
+SPATIAL_KEYS = 1 << 31
+"""Reset keys at or above this start the spatial probe's widened initial states (object
+positions beyond the demos' range). Seeds are below 2**31 and LIBERO's fresh-scene keys in
+[2**30, 2**31), so no other episode's key reaches it."""
+
+
+def is_spatial(key: int) -> bool:
+    return key >= SPATIAL_KEYS
+
+
 def episode_seeds(suite: str, task: str, split: str, n: int) -> list[int]:
-    """Fixed initial-state seeds for one task and split ("demo", "heldout", "eval").
+    """Fixed initial-state seeds (below 2**31) for one task and split ("demo", "heldout",
+    "eval", "spatial").
 
     Derived from names, not from a global RNG, so every method, stage and machine sees the
     same episodes, and adding a task never shifts another task's episodes.

@@ -58,7 +58,21 @@ METRICS = [
            optional=True),
     Metric("auc", "AUC", True,
            "LIBERO area under the success curve: FWT and later success together", optional=True),
+    Metric("spatial_foundation_success_stage0", "spatial stage-0", True,
+           "spatial probe: foundation success from widened initial states (beyond the demos' "
+           "range) after the foundation stage", optional=True),
+    Metric("spatial_retention", "spatial retention", True,
+           "spatial probe: foundation success from widened initial states after the last stage",
+           optional=True),
+    Metric("spatial_plasticity", "spatial plasticity", True,
+           "spatial probe: mean success from widened initial states on each stream task right "
+           "after its own stage", optional=True),
 ]
+OPTIONAL_NOTES = {
+    "fwt": "FWT, NBT and AUC (LIBERO) appear when runs log learning-curve evaluations.",
+    "spatial_retention": "The spatial columns appear when runs evaluate the spatial probe "
+                         "(`spatial_episodes` > 0).",
+}
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from harness.atomic import write_text
 from harness.bootstrap import RESAMPLES
 from harness.errors import RetainError
 from harness.report import plots
-from harness.report.aggregate import METRICS, RowSummary, shown_metrics, summarize
+from harness.report.aggregate import OPTIONAL_NOTES, RowSummary, shown_metrics, summarize
 from harness.report.groups import build_rows
 from harness.report.runs import experiment_id, load_runs, open_client
 from harness.report.table import arrow, csv_table, latex_table, markdown_table
@@ -60,6 +60,8 @@ def write_report(out: Path, summaries: list[RowSummary], benchmark: str,
         "update_sparsity.png": plots.update_distribution,
         "relative_l2_per_layer.png": plots.layer_relative_l2,
     }
+    if any(s.cells["spatial_retention"].n for s in summaries):
+        figures["spatial_vs_retention.png"] = plots.spatial_retention
     written = []
     for name, draw in figures.items():
         draw(out / name, summaries, benchmark)
@@ -124,8 +126,8 @@ def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: in
                  "identity at evaluation (the policy must be told which task it acts on); none: "
                  "the current task's data alone.")
     lines += [f"- {m.title} {arrow(m)}: {m.note}." for m in shown_metrics(summaries)]
-    if len(shown_metrics(summaries)) < len(METRICS):
-        lines.append("- FWT, NBT and AUC (LIBERO) appear when runs log learning-curve evaluations.")
+    shown = {m.key for m in shown_metrics(summaries)}
+    lines += [f"- {note}" for key, note in OPTIONAL_NOTES.items() if key not in shown]
     lines += ["", "## Figures", ""]
     lines += [f"![{name.removesuffix('.png')}]({name})" for name in figures]
     lines += ["", "Success matrix per method (mean over seeds):", ""]

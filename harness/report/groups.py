@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from harness.config import NOT_IN_RUN_KEY, run_label
+from harness.config import NOT_IN_RUN_KEY, QUIET_DEFAULTS, run_label
 from harness.report.runs import RunRecord
 
 # config fields that do not change what a run measures (the run key's exclusions in
@@ -63,13 +63,16 @@ def settings(run: RunRecord) -> dict[str, str]:
             out[key.removeprefix("config.")] = value
         elif key.startswith("method."):
             out[key.removeprefix("method.")] = value
+    for key, default in QUIET_DEFAULTS.items():  # logged at its default, or from before it existed
+        if out.get(key, str(default)) == str(default):
+            out.pop(key, None)
     return out
 
 
 def label_of(run: RunRecord, varying: list[str]) -> str:
     """The sweep point, then the settings that tell this run from others of its method and point."""
     s = settings(run)
-    extra = ",".join(f"{k}={s.get(k, '-')}" for k in varying)
+    extra = ",".join(f"{k}={s.get(k, QUIET_DEFAULTS.get(k, '-'))}" for k in varying)
     return run_label(run.method, " ".join(part for part in (run.sweep_point, extra) if part))
 
 

@@ -247,3 +247,44 @@ def layer_relative_l2(path: Path, summaries: list[RowSummary], benchmark: str) -
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     save(fig, path)
+
+
+def spatial_retention(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
+    """Spatial retention against retention, one point per row (error bars: 95% CI), each with a
+    faint arrow from its stage-0 values: below the diagonal, what generalised beyond the demos'
+    range is kept worse than what lies inside it (the paper's "spatial overfitting")."""
+    fig = Figure(figsize=(10, 6))
+    ax = fig.add_subplot()
+    color = colors(summaries)
+    xs, ys = [], []
+    for s in summaries:
+        x, y = s.cells["retention"], s.cells["spatial_retention"]
+        start = s.foundation_by_stage[0], s.cells["spatial_foundation_success_stage0"]
+        if not (x.n and y.n):
+            continue
+        ax.errorbar(x.mean, y.mean, xerr=_err(x), yerr=_err(y), fmt="o", color=color[s.label],
+                    capsize=3, label=s.label)
+        ax.annotate(s.label, (x.mean, y.mean), xytext=(5, 5), textcoords="offset points",
+                    fontsize=8)
+        if start[0].n and start[1].n:
+            ax.annotate("", (x.mean, y.mean), xytext=(start[0].mean, start[1].mean),
+                        arrowprops={"arrowstyle": "->", "color": color[s.label], "alpha": 0.4})
+            ax.plot(start[0].mean, start[1].mean, "x", color="black",
+                    label="stage 0 (the foundation)" if not xs else None)
+            xs.append(start[0].mean)
+            ys.append(start[1].mean)
+        xs += [v for v in (x.mean, x.low, x.high) if v is not None]
+        ys += [v for v in (y.mean, y.low, y.high) if v is not None]
+    lo, hi = _zoom(xs + ys)
+    ax.plot([lo, hi], [lo, hi], ":", color="grey", linewidth=1, zorder=0,
+            label="spatial = in-range success")
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(lo, hi)
+    ax.set_xlabel("retention (foundation success after the last stage, demo-range states)")
+    ax.set_ylabel("spatial retention (the same, from widened initial states)")
+    ax.set_title(f"{benchmark}: spatial probe (arrows start at stage 0; below the diagonal: "
+                 "worse beyond the demos' range)", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    fig.tight_layout()
+    save(fig, path)

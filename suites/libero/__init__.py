@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 
 from suites import register_suite
-from suites.base import Suite, TaskEnv, episode_seeds
+from suites.base import SPATIAL_KEYS, Suite, TaskEnv, episode_seeds
 from suites.libero.install import ensure_installed
 from suites.libero.tasks import STATE_DIM, LiberoTask, all_tasks
 
@@ -20,6 +20,7 @@ class LiberoSuite(Suite):
     state_dim = STATE_DIM
     action_dim = ACTION_DIM
     max_episode_steps = 520  # the longest per-suite limit (libero_10); max_steps(task) is the rule
+    spatial_probe_version = "offset3-6cm-1"
 
     def __init__(self):
         super().__init__()
@@ -40,12 +41,20 @@ class LiberoSuite(Suite):
         return LiberoTaskEnv(self.task(task), cameras, image_size)
 
     def episode_keys(self, task: str, split: str, n: int) -> list[int]:
-        """Evaluation episode i: LIBERO's init state i mod 50. Demos and held-out demos: fresh
-        scenes from LIBERO's placement sampler, seeded per episode (env.py)."""
-        from suites.libero.env import FRESH_PLACEMENT
+        """Evaluation episode i: LIBERO's init state i mod 50. Spatial episode i: init state
+        i mod 50 with its objects moved by a seeded offset (the key's low bits hold the index,
+        the rest seeds the offsets). Demos and held-out demos: fresh scenes from LIBERO's
+        placement sampler, seeded per episode (env.py)."""
+        from suites.libero.env import FRESH_PLACEMENT, INIT_INDEX_BITS
+        from suites.libero.tasks import NUM_INIT_STATES
 
         if split == "eval":
             return list(range(n))
+        if split == "spatial":
+            seeds = episode_seeds(self.name, task, split, n)
+            index_bits = (1 << INIT_INDEX_BITS) - 1
+            return [SPATIAL_KEYS | (seed & ~index_bits) | (i % NUM_INIT_STATES)
+                    for i, seed in enumerate(seeds)]
         return [FRESH_PLACEMENT | seed for seed in episode_seeds(self.name, task, split, n)]
 
     def max_steps(self, task: str) -> int:

@@ -6,6 +6,9 @@ Episodes (`reset(key)`):
   key >= FRESH_PLACEMENT a fresh scene from LIBERO's own placement sampler, seeded by the key
                          (demo and held-out episodes: the distribution LIBERO drew its init
                          states from, but never one of the 50 evaluation states).
+  key >= SPATIAL_KEYS    the spatial probe: fixed init state `key & 63` with every object that
+                         rests on the table or floor moved by a seeded 3-6 cm offset in a
+                         random direction, to beyond its demo range (`spatial_state`).
 Either way SETTLE_STEPS no-op steps follow (gripper open) while objects settle; they are not
 part of the episode, as in LIBERO's evaluations.
 
@@ -24,7 +27,7 @@ import numpy as np
 
 import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
 from harness.errors import RetainError
-from suites.base import Observation, StepResult, TaskEnv
+from suites.base import Observation, StepResult, TaskEnv, is_spatial
 from suites.libero.install import ensure_installed
 from suites.libero.tasks import (
     MAX_OBJECTS,
@@ -38,6 +41,11 @@ from suites.libero.tasks import (
 )
 
 FRESH_PLACEMENT = 1 << 30
+SPATIAL_OFFSET = (0.03, 0.06)  # m: how far the spatial probe moves an object (x, y), at least/most
+DEMO_RANGE_MARGIN = 0.005  # m: an object's demo range is its init states' x-y box grown by this
+PENETRATION = 0.003  # m: a moved object may not sink deeper than this into anything new
+MAX_DRAWS = 200  # offsets tried per object before it is left where it is
+INIT_INDEX_BITS = 6  # a spatial key's low bits hold its init state's index (< 64)
 NOOP = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)  # LIBERO's dummy action: hold, open
 CAMERAS = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "robot0_eye_in_hand"}
 
@@ -98,7 +106,10 @@ class LiberoTaskEnv(TaskEnv):
 
     def start(self, key: int) -> None:
         """The episode's initial sim state, before the settle steps."""
-        if key < FRESH_PLACEMENT:
+        if is_spatial(key):
+            self.env.reset()
+            state = self.spatial_state(key)
+        elif key < FRESH_PLACEMENT:
             self.env.reset()
             state = init_states(self.task.name)[key % NUM_INIT_STATES]
         else:  # LIBERO's samplers draw from numpy's global RNG: seed it for this reset only
@@ -160,6 +171,92 @@ class LiberoTaskEnv(TaskEnv):
         """The observation at a recorded sim state (reading a LIBERO dataset file's `states`)."""
         self.raw_obs = self.env.regenerate_obs_from_state(np.asarray(state, dtype=np.float64))
         return self._observation(self.raw_obs)
+
+    # --- the spatial probe -----------------------------------------------------------------------
+    def spatial_state(self, key: int) -> np.ndarray:
+        """Fixed init state `key & 63` with its table- or floor-standing objects moved.
+
+        In BDDL order, each object whose init predicate puts it on a region of the workspace
+        (LIBERO's table or floor) is moved, together with any object its init puts on top of it
+        (a bowl on a cookie box), by an offset of SPATIAL_OFFSET length in a random direction,
+        drawn from a generator seeded by the key until the object lands outside its demo range
+        (the x-y box of its 50 init states, which LIBERO's placement sampler matches to within
+        4 mm, grown by DEMO_RANGE_MARGIN) and sinks into nothing it did not already touch.
+        Objects in or on a fixture (a drawer, a cabinet top) stay. An object with no such
+        offset in MAX_DRAWS draws stays too (none of the tasks measured needed it).
+        """
+        index = key & ((1 << INIT_INDEX_BITS) - 1)
+        state = np.array(init_states(self.task.name)[index % NUM_INIT_STATES], dtype=np.float64)
+        rng = np.random.default_rng(key)
+        for base, stack in self.spatial_stacks().items():
+            addresses = [self.qpos_address(name) for name in stack]
+            low, high = self.demo_ranges()[base]
+            touching = self._touching(state, stack)
+            for _ in range(MAX_DRAWS):
+                angle, length = rng.uniform(0, 2 * np.pi), rng.uniform(*SPATIAL_OFFSET)
+                offset = length * np.array([np.cos(angle), np.sin(angle)])
+                xy = state[addresses[0]:addresses[0] + 2] + offset
+                if np.all((xy >= low) & (xy <= high)):
+                    continue
+                trial = state.copy()
+                for a in addresses:
+                    trial[a:a + 2] += offset
+                if not self._sinks(trial, stack, touching):
+                    state = trial
+                    break
+        return state
+
+    def spatial_stacks(self) -> dict[str, list[str]]:
+        """Object on the workspace -> it and the objects its init puts on top of it."""
+        problem = self.env.env
+        on = [(fact[1], fact[2]) for fact in problem.parsed_problem["initial_state"]
+              if len(fact) == 3 and fact[0].lower() == "on" and fact[1] in problem.objects_dict]
+        stacks = {obj: [obj] for obj, where in on
+                  if where.startswith(problem.workspace_name + "_")}
+        for obj, where in on:
+            if where in stacks:
+                stacks[where].append(obj)
+        return stacks
+
+    def demo_ranges(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Object -> the (low, high) x-y corners of its demo range (`spatial_state`)."""
+        if not hasattr(self, "_demo_ranges"):
+            states = init_states(self.task.name)
+            self._demo_ranges = {}
+            for name in self.objects:
+                a = self.qpos_address(name)
+                xy = states[:, a:a + 2]
+                self._demo_ranges[name] = (xy.min(axis=0) - DEMO_RANGE_MARGIN,
+                                           xy.max(axis=0) + DEMO_RANGE_MARGIN)
+        return self._demo_ranges
+
+    def qpos_address(self, name: str) -> int:
+        """Where the object's free-joint x sits in a flattened state ([time, qpos, qvel])."""
+        joint = self.env.env.objects_dict[name].joints[-1]
+        return 1 + self.env.sim.model.get_joint_qpos_addr(joint)[0]
+
+    def _contacts(self, state: np.ndarray, stack: list[str]) -> list[tuple[int, float]]:
+        """(root body, depth) of every contact between the stack and anything else at `state`."""
+        sim = self.env.sim
+        sim.set_state_from_flattened(state)
+        sim.forward()
+        model, data = sim.model._model, sim.data._data
+        objects = self.env.env.objects_dict
+        ours = {model.body_rootid[model.body(objects[n].root_body).id] for n in stack}
+        out = []
+        for contact in data.contact[:data.ncon]:
+            roots = [model.body_rootid[model.geom_bodyid[geom]]
+                     for geom in (contact.geom1, contact.geom2)]
+            if (roots[0] in ours) != (roots[1] in ours):
+                out.append((roots[1] if roots[0] in ours else roots[0], -contact.dist))
+        return out
+
+    def _touching(self, state: np.ndarray, stack: list[str]) -> set[int]:
+        return {root for root, _ in self._contacts(state, stack)}
+
+    def _sinks(self, state: np.ndarray, stack: list[str], touching: set[int]) -> bool:
+        return any(depth > PENETRATION and root not in touching
+                   for root, depth in self._contacts(state, stack))
 
     def _make_expert(self) -> None:
         """The task's expert (suites.libero.experts), built once per episode from the settled

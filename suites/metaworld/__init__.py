@@ -4,6 +4,17 @@ Observations are Meta-World's 39-d goal-observable state (hand, gripper, two obj
 frame of those, goal). Initial states are seeded per episode through Meta-World's own
 `seeded_rand_vec` path, so `reset(seed)` is reproducible across processes.
 
+Spatial probe (keys >= SPATIAL_KEYS): the task's own reset draws its object and goal positions
+(the "rand vec") from a widened box instead of `_random_reset_space`: every x and y range at
+least MIN_WIDENED wide is scaled by WIDEN around its centre and clipped to the hand's reach
+(`hand_low`/`hand_high`); z ranges and near-fixed coordinates stay as they are. Draws that land
+inside the original box are rejected, so every probe state has at least one object or goal
+coordinate beyond the demos' range; so are states where two bodies press into each other more
+than PENETRATION deeper than in the task's own states (an object inside a bin wall, the gripper
+inside a handle). The draw comes from Meta-World's seeded `np_random`, and the
+task's own `reset_model` runs unchanged (including its own redraws, e.g. reach's minimum distance
+between object and goal).
+
 Cameras (on request only): `agentview_rgb` is Meta-World's "corner" camera, a fixed view of the
 table and the arm from the front left, and `eye_in_hand_rgb` its "gripperPOV" camera, mounted on
 the hand between the fingers. "corner" is defined with its up axis pointing down, so its image is
@@ -12,10 +23,21 @@ rotated by 180 degrees to come out upright (a rotation, not a flip: left stays l
 
 from __future__ import annotations
 
+from collections import defaultdict
+
 import numpy as np
 
 from suites import register_suite
-from suites.base import AGENTVIEW, EYE_IN_HAND, Observation, StepResult, Suite, TaskEnv
+from suites.base import (
+    AGENTVIEW,
+    EYE_IN_HAND,
+    SPATIAL_KEYS,
+    Observation,
+    StepResult,
+    Suite,
+    TaskEnv,
+    is_spatial,
+)
 from suites.metaworld.instructions import INSTRUCTIONS
 
 _STATE_DIM = 39
@@ -23,6 +45,10 @@ _ACTION_DIM = 4
 # observation key -> (Meta-World camera, whether its image must be turned by 180 degrees)
 _CAMERAS = {AGENTVIEW: ("corner", True), EYE_IN_HAND: ("gripperPOV", False)}
 _SHADOW_MAP_SIZE = 1024
+WIDEN = 2.0  # the spatial probe's x and y ranges: this many times the task's own, same centre
+MIN_WIDENED = 0.01  # m; narrower ranges (Meta-World's +-1 mm jitter) are not widened
+PENETRATION = 0.005  # m: how much deeper than in the task's own states a probe state may press
+MAX_DRAWS = 100  # widened draws per probe state before the last one is kept
 
 
 def _env_classes():
@@ -46,6 +72,7 @@ class MetaWorldEnv(TaskEnv):
         self._env = _env_classes()[f"{task}-goal-observable"](seed=0)
         self._expert = _expert_classes()[task]()
         self._obs: np.ndarray | None = None
+        self._allowance: dict | None = None  # the spatial probe's, made at its first reset
         self._renderer = None
         if cameras:
             import mujoco
@@ -70,9 +97,64 @@ class MetaWorldEnv(TaskEnv):
         env = self._env
         env._freeze_rand_vec = False
         env.seeded_rand_vec = True
+        if is_spatial(seed):
+            return self._observation(self._spatial_reset(int(seed) - SPATIAL_KEYS))
         env.seed(int(seed))
         raw, _ = env.reset()
         return self._observation(raw)
+
+    def _spatial_reset(self, seed: int) -> np.ndarray:
+        """The task's own reset with the widened draw, redrawn (up to MAX_DRAWS times) while
+        the state presses anything into anything else deeper than the task's own states do."""
+        env = self._env
+        allowed = self._contact_allowance()
+        env.seed(seed)
+        env._get_state_rand_vec = self._widened_rand_vec  # the task's reset draws from it
+        try:
+            for _ in range(MAX_DRAWS):
+                raw, _ = env.reset()
+                depths = self._contact_depths()
+                if all(depth <= allowed[pair] for pair, depth in depths.items()):
+                    break
+        finally:
+            del env._get_state_rand_vec  # back to Meta-World's own draw
+        return raw
+
+    def _widened_rand_vec(self) -> np.ndarray:
+        """One draw from the widened box outside the original (the module docstring)."""
+        env = self._env
+        box = env._random_reset_space
+        low, high, widened = widened_box(box.low, box.high, env.hand_low, env.hand_high)
+        while True:
+            vec = env.np_random.uniform(low, high, size=low.size)
+            outside = (vec < box.low) | (vec > box.high)
+            if outside[widened].any():
+                env._last_rand_vec = vec
+                return vec
+
+    def _contact_depths(self) -> dict[tuple[int, int], float]:
+        """(body, body) -> the deepest penetration between them now, in m."""
+        data, model = self._env.data, self._env.model
+        out: dict[tuple[int, int], float] = {}
+        for contact in data.contact[:data.ncon]:
+            a, b = sorted((model.geom_bodyid[contact.geom1], model.geom_bodyid[contact.geom2]))
+            out[(a, b)] = max(out.get((a, b), 0.0), -float(contact.dist))
+        return out
+
+    def _contact_allowance(self) -> dict[tuple[int, int], float]:
+        """How deep each pair of bodies may press into each other in a probe state: as deep as
+        in the task's own initial states (seeds 0..9; the hammer rests 28 mm into the table)
+        plus PENETRATION; a pair that never touches there, PENETRATION."""
+        if self._allowance is None:
+            env, deepest = self._env, {}
+            for seed in range(10):
+                env.seed(seed)
+                env.reset()
+                for pair, depth in self._contact_depths().items():
+                    deepest[pair] = max(deepest.get(pair, 0.0), depth)
+            self._allowance = defaultdict(lambda: PENETRATION,
+                                          {p: d + PENETRATION for p, d in deepest.items()})
+        return self._allowance
 
     def step(self, action: np.ndarray) -> StepResult:
         action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
@@ -89,11 +171,30 @@ class MetaWorldEnv(TaskEnv):
         self._env.close()
 
 
+def widened_box(low: np.ndarray, high: np.ndarray, hand_low: np.ndarray, hand_high: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The spatial probe's box for a rand vec of (x, y, z) positions: (low, high, which
+    coordinates were widened). Why x and y only: z is a height (on the table, or a goal in the
+    air), and a lower one would be inside the table."""
+    low, high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+    horizontal = np.arange(low.size) % 3 < 2
+    widened = horizontal & (high - low >= MIN_WIDENED)
+    centre, half = (low + high) / 2, WIDEN * (high - low) / 2
+    reach_low, reach_high = np.resize(hand_low, low.size), np.resize(hand_high, low.size)
+    new_low = np.where(widened, np.maximum(centre - half, np.minimum(reach_low, low)), low)
+    new_high = np.where(widened, np.minimum(centre + half, np.maximum(reach_high, high)), high)
+    widened &= (new_low < low) | (new_high > high)  # clipping may leave no room outside
+    if not widened.any():
+        raise ValueError("no position range of this task can be widened within the hand's reach")
+    return new_low, new_high, widened
+
+
 @register_suite("metaworld")
 class MetaWorldSuite(Suite):
     state_dim = _STATE_DIM
     action_dim = _ACTION_DIM
     max_episode_steps = 500  # Meta-World's own limit; benchmarks usually set less
+    spatial_probe_version = f"widen{WIDEN:g}x-1"
 
     def task_names(self) -> list[str]:
         envs = {name.removesuffix("-goal-observable") for name in _env_classes()}
