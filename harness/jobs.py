@@ -182,6 +182,7 @@ def stage_metrics(cfg: BenchConfig, record) -> dict[str, float]:
     m = {f"success/{t}": v for t, v in record.success.items()}
     m.update({f"heldout_loss/{t}": v for t, v in record.heldout_loss.items()})
     m.update({f"update/{k}": v for k, v in record.updates.items()})
+    m.update({f"spatial_success/{t}": v for t, v in record.spatial_success.items()})
     m["foundation_success"] = foundation_success(cfg, record)
     m["stage_train_loss"] = record.train_loss
     return m

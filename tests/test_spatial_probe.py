@@ -182,6 +182,15 @@ def test_probe_on_writes_the_spatial_matrix_and_metrics(two_tiny_runs):
     assert metrics["spatial_foundation_success_stage0"] == pytest.approx(S[0, :2].mean())
     assert metrics["spatial_retention"] == pytest.approx(S[2, :2].mean())
     assert metrics["spatial_plasticity"] == pytest.approx((S[1, 2] + S[2, 3]) / 2)
+    # every stage's spatial success is an MLflow metric of the run, step = stage
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=f"sqlite:///{two_tiny_runs}/mlflow.db")
+    experiment = client.get_experiment_by_name("mw-quick-tiny").experiment_id
+    child = [r for r in client.search_runs([experiment])
+             if r.data.tags.get("label") == "sft[spatial_episodes=2]"]
+    history = client.get_metric_history(child[0].info.run_id, "spatial_success/reach-v3")
+    assert [(m.step, m.value) for m in history] == [(i, S[i, 0]) for i in range(3)]
     # the probe adds to the normal evaluation and leaves it as it is
     plain = two_tiny_runs / "mw-quick-tiny" / "sft" / "seed0"
     assert (run / "success_matrix.csv").read_text() == (plain / "success_matrix.csv").read_text()
