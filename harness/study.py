@@ -18,6 +18,7 @@ from typing import Any
 
 import yaml
 
+from harness.cli import Plan, Variant, execute, plan, variant_job_key
 from harness.config import NOT_IN_RUN_KEY, SHARED_BY_SWEEP_POINTS, coerce, parse_overrides
 from harness.errors import RetainError
 
@@ -110,8 +111,8 @@ class PartPlan:
     """A part's runs planned by `harness bench`'s planning, merged into one comparison."""
 
     part: StudyPart
-    plan: Any  # harness.cli.Plan: every run's variants, the first run's config
-    jobs: list[tuple[int, Any, str]]  # (seed, Variant, job key), seeds outer
+    plan: Plan  # every run's variants; the first run's config, which they all share
+    jobs: list[tuple[int, Variant, str]]  # (seed, variant, job key), seeds outer
 
     @property
     def experiment(self) -> str:
@@ -121,7 +122,6 @@ class PartPlan:
 def plan_part(part: StudyPart, extra: list[str]) -> PartPlan:
     """Plan every run of the part (nothing is trained or written) and check that they can share
     one foundation per seed and never share a run directory."""
-    from harness.cli import Plan, plan, variant_job_key
     from suites import get_suite
 
     plans = []
@@ -171,7 +171,7 @@ def finished_keys(pp: PartPlan) -> set[str]:
     return done & {key for *_, key in pp.jobs}
 
 
-def stages_done(pp: PartPlan, seed: int, variant) -> int:
+def stages_done(seed: int, variant: Variant) -> int:
     """Stage checkpoints in the job's run directory (what a restart resumes after)."""
     from harness.runner import run_dir
 
@@ -183,21 +183,20 @@ def describe(study: Study, plans: list[PartPlan]) -> str:
     lines = [f"study {study.name} ({study.path}): {len(plans)} of {len(study.parts)} parts"]
     for pp in plans:
         done = finished_keys(pp)
-        started = [(s, v) for s, v, k in pp.jobs if k not in done and stages_done(pp, s, v)]
+        started = [(s, v) for s, v, k in pp.jobs if k not in done and stages_done(s, v)]
         todo = len(pp.jobs) - len(done) - len(started)
         lines.append(f"  {pp.part.name}: {pp.experiment}, {len(pp.plan.variants)} runs x "
                      f"{pp.part.seeds} seeds = {len(pp.jobs)} jobs: {len(done)} finished, "
                      f"{len(started)} started, {todo} to do")
         lines.append(f"    runs: {', '.join(v.label for v in pp.plan.variants)}")
         for s, v in started:
-            lines.append(f"    started: {v.label} seed {s}, {stages_done(pp, s, v)} of "
+            lines.append(f"    started: {v.label} seed {s}, {stages_done(s, v)} of "
                          f"{len(v.cfg.stream_tasks)} stages")
     return "\n".join(lines)
 
 
 def run_part(pp: PartPlan) -> int:
     """The part's unfinished jobs through `harness bench`'s execution, then its report."""
-    from harness.cli import execute
     from harness.report.build import ReportSettings, build_report
 
     done = finished_keys(pp)
