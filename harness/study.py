@@ -189,6 +189,13 @@ def describe(study: Study, plans: list[PartPlan]) -> str:
                      f"{pp.part.seeds} seeds = {len(pp.jobs)} jobs: {len(done)} finished, "
                      f"{len(started)} started, {todo} to do")
         lines.append(f"    runs: {', '.join(v.label for v in pp.plan.variants)}")
+        finished: dict[str, list[str]] = {}
+        for s, v, k in pp.jobs:
+            if k in done:
+                finished.setdefault(v.label, []).append(str(s))
+        if finished:
+            lines.append("    finished: " + "; ".join(f"{label} seeds {','.join(seeds)}"
+                                                  for label, seeds in finished.items()))
         for s, v in started:
             lines.append(f"    started: {v.label} seed {s}, {stages_done(s, v)} of "
                          f"{len(v.cfg.stream_tasks)} stages")

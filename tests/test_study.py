@@ -127,6 +127,8 @@ def test_tiny_study_runs_then_resumes_without_training(tmp_path, capsys, monkeyp
     assert study(args) == 0
     assert "all 2 jobs finished; nothing to run" in capsys.readouterr().out
     assert study(args + ["DRY=1"]) == 0
-    assert "2 jobs: 2 finished, 0 started, 0 to do" in capsys.readouterr().out
+    listing = capsys.readouterr().out
+    assert "2 jobs: 2 finished, 0 started, 0 to do" in listing
+    assert "finished: sft seeds 0; consft[variant=dft] seeds 0" in listing
     for label, text in matrices.items():
         assert (base / label / "seed0" / "success_matrix.csv").read_text() == text
