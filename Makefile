@@ -16,7 +16,7 @@ export PYTHONUNBUFFERED := 1
 OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v))))
 quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
-.PHONY: bench compare sweep report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
+.PHONY: bench compare sweep study report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
 	bench-eval libero-check
 
 $(STAMP): requirements.lock pyproject.toml
@@ -43,6 +43,11 @@ compare: $(STAMP)
 sweep: $(STAMP)
 	$(PY) -m harness bench $(call quote,$(OVERRIDES))
 	$(REPORT)
+
+# a study's parts, each a comparison that resumes where it stopped, then each part's report:
+#   make study STUDY=regimes [PART=mw-broad-6] [DRY=1] [executor=local jobs=2]; docs/study.md
+study: $(STAMP)
+	$(PY) -m harness study $(call quote,$(OVERRIDES))
 
 # tables and plots rebuilt from the MLflow store: make report [EXPERIMENT=mw-quick]
 report: $(STAMP)

@@ -151,6 +151,15 @@ def _changed(run_cfg: BenchConfig, base: BenchConfig, method: Method, own: dict,
 
 def bench(args: list[str]) -> int:
     """Demos, then each seed's foundation, then one job per (seed, variant) on the executor."""
+    p = plan(args)
+    return execute(p, [(seed, v) for seed in p.cfg.seed_list() for v in p.variants],
+                   " ".join(args))
+
+
+def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
+    """Run the given (seed, variant) jobs of a plan: the data, each of their seeds' foundations,
+    then the jobs on the executor. `harness bench` runs all of a plan's; a study (harness.study)
+    only the ones not finished yet, of several plans on one benchmark merged into one."""
     from harness.data import prepare_data
     from harness.executors import make_executor, plan_slots
     from harness.jobs import (
@@ -164,15 +173,14 @@ def bench(args: list[str]) -> int:
     from harness.run_outputs import summary_table
     from harness.tracking import Tracker, git_commit, package_versions
 
-    p = plan(args)
     cfg = p.cfg
     torch.set_num_threads(cfg.torch_threads)
     tracker = Tracker(cfg.results_dir, experiment=cfg.name)
     suite = get_suite(cfg.suite)
     provenance = {"git_commit": git_commit(), "versions": package_versions(),
-                  "command": " ".join(args), "seeds": cfg.seed_list()}
-    keyed = [(seed, variant, _job_key(variant, suite, seed)) for seed in cfg.seed_list()
-             for variant in p.variants]
+                  "command": command, "seeds": cfg.seed_list()}
+    keyed = [(seed, variant, variant_job_key(variant, suite, seed)) for seed, variant in runs]
+    seeds = sorted({seed for seed, _ in runs})
     parent = tracker.continue_or_start_run(invocation_key(cfg.name, [k for *_, k in keyed]),
                                            f"{cfg.name}:{cfg.method}", tags={"benchmark": cfg.name})
     tracker.log_params(parent, provenance_params(cfg, provenance))
@@ -182,8 +190,9 @@ def bench(args: list[str]) -> int:
     status, children = "FAILED", []
     try:
         print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
-              f"{len(cfg.stream_tasks)} stream tasks, runs {[v.label for v in p.variants]}, "
-              f"seeds {cfg.seed_list()}; {len(keyed)} jobs, executor {cfg.executor} "
+              f"{len(cfg.stream_tasks)} stream tasks, runs "
+              f"{list(dict.fromkeys(v.label for _, v in runs))}, "
+              f"seeds {seeds}; {len(keyed)} jobs, executor {cfg.executor} "
               f"({_slots_text(cfg, slots)})", flush=True)
         data = prepare_data(cfg, suite)
         print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
@@ -196,7 +205,7 @@ def bench(args: list[str]) -> int:
         executor = make_executor(cfg, slots, suite, data)
         try:
             foundations = [FoundationJob(cfg, seed, tracking, slots.eval_workers)
-                           for seed in cfg.seed_list()]
+                           for seed in seeds]
             for i, success in executor.run(build_foundation, foundations):
                 print(f"[retain] seed {foundations[i].seed}: foundation ready, stage-0 "
                       f"foundation success {success:.3f} ({time.time() - start:.0f}s)", flush=True)
@@ -282,7 +291,8 @@ def _slots_text(cfg: BenchConfig, slots) -> str:
     return f"{slots.parallel} at once, {slots.eval_workers} {each} each"
 
 
-def _job_key(variant: Variant, suite, seed: int) -> str:
+def variant_job_key(variant: Variant, suite, seed: int) -> str:
+    """The job's identity (harness.jobs.job_key): its MLflow run carries it as a tag."""
     from harness.foundation import foundation_key
     from harness.jobs import job_key
     from harness.runner import run_settings_key
@@ -308,9 +318,15 @@ def _child_run(tracker, variant: Variant, seed: int, key: str, parent: str, prov
     return child
 
 
+def _study(args: list[str]) -> int:
+    from harness.study import study
+
+    return study(args)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    commands = {"bench": bench}
+    commands = {"bench": bench, "study": _study}
     if not argv or argv[0] not in commands:
         print(f"usage: python -m harness {{{','.join(commands)}}} [KEY=VALUE ...]", file=sys.stderr)
         return 2
