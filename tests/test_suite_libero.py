@@ -299,3 +299,17 @@ def test_expert_table_writes_one_block_per_libero_suite(tmp_path):
     text = readme.read_text()
     assert f"| `{OBJECT_TASK}` | 47/50 (94%) | 120.0 |" in text
     assert "old" not in text and text.endswith(f"{other}\noutro\n")
+
+
+def test_every_libero_benchmark_foundation_has_a_scripted_expert():
+    """A foundation trains on expert demos: a task without an expert would stop a run after the
+    demos of the tasks before it (the stream may name uncovered tasks with `demos_dir`)."""
+    from harness.config import benchmark_names, load_benchmark
+    from suites.libero.experts import EXPERT_TASKS
+
+    libero = [load_benchmark(n) for n in benchmark_names()]
+    libero = [b for b in libero if b.suite == "libero"]
+    assert len(libero) >= 5
+    for bench in libero:
+        missing = sorted(set(bench.foundation_tasks) - EXPERT_TASKS)
+        assert not missing, f"{bench.name}: no expert for {missing}"
