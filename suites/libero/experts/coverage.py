@@ -20,13 +20,12 @@ LIBERO_OBJECT = (
     "pick_up_the_orange_juice_and_place_it_in_the_basket",
 )
 
-# Not yet: pick_up_the_black_bowl_in_the_top_drawer_of_the_wooden_cabinet_and_place_it_on_the_plate
-# (2/5 when the env is reused across episodes, though each failing state solves in a fresh env).
 LIBERO_SPATIAL = (
     "pick_up_the_black_bowl_between_the_plate_and_the_ramekin_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_next_to_the_ramekin_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_from_table_center_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_on_the_cookie_box_and_place_it_on_the_plate",
+    "pick_up_the_black_bowl_in_the_top_drawer_of_the_wooden_cabinet_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_on_the_ramekin_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_next_to_the_cookie_box_and_place_it_on_the_plate",
     "pick_up_the_black_bowl_on_the_stove_and_place_it_on_the_plate",

@@ -39,7 +39,7 @@ def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
         obj, target = goal[1], goal[2]
         grasp = Grasp.plan(scene, obj)
         xy, rest_z = _placement(scene, relation, target)
-        bottom = scene.box(obj)[0][2]
+        bottom = scene.support_top(obj)  # from inside a drawer: above its walls
         travel = max(bottom, rest_z()) + CARRY_CLEARANCE + grasp.below
         travel = max(travel, scene.eef_pos()[2] - 0.05)
         first = []
