@@ -3,11 +3,14 @@ suite's own env (LIBERO's protocol: the fixed init state, the settle steps, the 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from suites import get_suite
 from suites.libero.experts import EXPERT_TASKS, make_expert
 from suites.libero.experts.coverage import LIBERO_OBJECT
+from suites.libero.experts.scene import hand_down
+from suites.libero.experts.skills import facing, nearer_half_turn, turn_angle
 from suites.libero.tasks import suite_tasks
 
 
@@ -48,3 +51,37 @@ def test_expert_turns_a_knob_from_a_fixed_init_state():
     task = suite_tasks("libero_goal")[7]  # turn on the stove: the articulated family
     assert task == "turn_on_the_stove"
     assert _solves(task, init_state=2)
+
+
+def test_front_grasp_takes_the_half_turn_the_wrist_reaches():
+    # A handle facing -y: the plain front grasp is half a turn from the hand's home pose (where
+    # the controller's orientation error vanishes, and past the wrist's limit); its twin is not.
+    home = hand_down(0.0)
+    front = facing(np.array([0.0, -1.0, 0.0]), np.pi / 2)
+    chosen = nearer_half_turn(front, home)
+    assert turn_angle(front, home) == pytest.approx(np.pi)
+    assert turn_angle(chosen, home) == pytest.approx(np.pi / 2)
+    np.testing.assert_allclose(chosen[:, 2], front[:, 2])  # same pointing direction
+
+
+@pytest.fixture(scope="module")
+def drawer_goal_env():
+    env = get_suite("libero").make_env("open_the_top_drawer_and_put_the_bowl_inside")
+    yield env
+    env.close()
+
+
+def test_evaluation_reset_places_fixtures_the_same_whatever_ran_before(drawer_goal_env):
+    env = drawer_goal_env
+    model = env.env.sim.model
+    cabinet = model.body_name2id("wooden_cabinet_1_main")
+    saved = np.random.get_state()
+    env.reset(3)
+    first = model.body_pos[cabinet].copy(), model.body_quat[cabinet].copy()
+    env.reset(7)
+    np.random.seed(123)  # the caller's RNG must not matter either
+    env.reset(3)
+    np.testing.assert_array_equal(model.body_pos[cabinet], first[0])
+    np.testing.assert_array_equal(model.body_quat[cabinet], first[1])
+    np.random.set_state(saved)
+

@@ -118,10 +118,15 @@ class Scene:
             for mine, other in ((b1, b2), (b2, b1)):
                 if mine in own and other not in own and other not in robot:
                     touching.add(other)
-        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] in touching
-                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
         bottom = float(self.box(name)[0][2])
-        return max(bottom, float(self._geom_corners(geoms)[:, 2].max())) if geoms else bottom
+        return max([bottom, *(self.body_top(b) for b in touching)])
+
+    def body_top(self, body: int) -> float:
+        """The highest point of one body's own collision geoms (not its children's)."""
+        m = self.model
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        return float(self._geom_corners(geoms)[:, 2].max()) if geoms else -np.inf
 
     def footprint(self, name: str) -> tuple[float, float, float]:
         """(narrow width, long width, yaw of the narrow direction) of the object seen from above.
