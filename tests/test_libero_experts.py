@@ -9,7 +9,8 @@ import pytest
 from suites import get_suite
 from suites.libero.experts import EXPERT_TASKS, make_expert
 from suites.libero.experts.coverage import LIBERO_OBJECT
-from suites.libero.experts.scene import hand_down
+from suites.libero.experts.planner import _push_legs
+from suites.libero.experts.scene import Scene, hand_down
 from suites.libero.experts.skills import facing, nearer_half_turn, turn_angle
 from suites.libero.tasks import suite_tasks
 
@@ -85,3 +86,31 @@ def test_evaluation_reset_places_fixtures_the_same_whatever_ran_before(drawer_go
     np.testing.assert_array_equal(model.body_quat[cabinet], first[1])
     np.random.set_state(saved)
 
+
+
+def _distance_to_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    return float(np.linalg.norm(np.maximum(np.maximum(lo - points, points - hi), 0.0), axis=1).min())
+
+
+def _polyline(start: np.ndarray, legs: list[np.ndarray]) -> np.ndarray:
+    stops = [start, *legs]
+    return np.concatenate([a + np.linspace(0, 1, 50)[:, None] * (b - a)
+                           for a, b in zip(stops, stops[1:])])
+
+
+def test_plate_push_ends_inside_its_region_going_around_the_cream_cheese():
+    env = get_suite("libero").make_env("push_the_plate_to_the_front_of_the_stove")
+    try:
+        env.reset(0)
+        scene = Scene(env.env)
+        region = "main_table_stove_front_region"
+        legs = _push_legs(scene, "plate_1", region)
+        half = np.abs(scene.mat(region) @ scene.site_size(region))[:2]
+        assert np.all(np.abs(legs[-1] - scene.pos(region)[:2]) <= half)  # LIBERO's region test
+        start = scene.pos("plate_1")[:2]
+        lo, hi = (b[:2] for b in scene.box("cream_cheese_1"))
+        straight = _distance_to_box(_polyline(start, [legs[-1]]), lo, hi)
+        chosen = _distance_to_box(_polyline(start, legs), lo, hi)
+        assert len(legs) == 2 and chosen > straight + 0.03  # one turn, well clear of the cheese
+    finally:
+        env.close()
