@@ -66,14 +66,14 @@ def test_front_grasp_takes_the_half_turn_the_wrist_reaches():
 
 
 @pytest.fixture(scope="module")
-def drawer_goal_env():
-    env = get_suite("libero").make_env("open_the_top_drawer_and_put_the_bowl_inside")
+def plate_env():
+    env = get_suite("libero").make_env("push_the_plate_to_the_front_of_the_stove")
     yield env
     env.close()
 
 
-def test_evaluation_reset_places_fixtures_the_same_whatever_ran_before(drawer_goal_env):
-    env = drawer_goal_env
+def test_evaluation_reset_places_fixtures_the_same_whatever_ran_before(plate_env):
+    env = plate_env
     model = env.env.sim.model
     cabinet = model.body_name2id("wooden_cabinet_1_main")
     saved = np.random.get_state()
@@ -87,7 +87,6 @@ def test_evaluation_reset_places_fixtures_the_same_whatever_ran_before(drawer_go
     np.random.set_state(saved)
 
 
-
 def _distance_to_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
     return float(np.linalg.norm(np.maximum(np.maximum(lo - points, points - hi), 0.0), axis=1).min())
 
@@ -98,19 +97,15 @@ def _polyline(start: np.ndarray, legs: list[np.ndarray]) -> np.ndarray:
                            for a, b in zip(stops, stops[1:])])
 
 
-def test_plate_push_ends_inside_its_region_going_around_the_cream_cheese():
-    env = get_suite("libero").make_env("push_the_plate_to_the_front_of_the_stove")
-    try:
-        env.reset(0)
-        scene = Scene(env.env)
-        region = "main_table_stove_front_region"
-        legs = _push_legs(scene, "plate_1", region)
-        half = np.abs(scene.mat(region) @ scene.site_size(region))[:2]
-        assert np.all(np.abs(legs[-1] - scene.pos(region)[:2]) <= half)  # LIBERO's region test
-        start = scene.pos("plate_1")[:2]
-        lo, hi = (b[:2] for b in scene.box("cream_cheese_1"))
-        straight = _distance_to_box(_polyline(start, [legs[-1]]), lo, hi)
-        chosen = _distance_to_box(_polyline(start, legs), lo, hi)
-        assert len(legs) == 2 and chosen > straight + 0.03  # one turn, well clear of the cheese
-    finally:
-        env.close()
+def test_plate_push_ends_inside_its_region_going_around_the_cream_cheese(plate_env):
+    plate_env.reset(0)
+    scene = Scene(plate_env.env)
+    region = "main_table_stove_front_region"
+    legs = _push_legs(scene, "plate_1", region)
+    half = np.abs(scene.mat(region) @ scene.site_size(region))[:2]
+    assert np.all(np.abs(legs[-1] - scene.pos(region)[:2]) <= half)  # LIBERO's region test
+    start = scene.pos("plate_1")[:2]
+    lo, hi = (b[:2] for b in scene.box("cream_cheese_1"))
+    straight = _distance_to_box(_polyline(start, [legs[-1]]), lo, hi)
+    chosen = _distance_to_box(_polyline(start, legs), lo, hi)
+    assert len(legs) == 2 and chosen > straight + 0.03  # one turn, well clear of the cheese
