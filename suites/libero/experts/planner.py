@@ -79,7 +79,7 @@ def _push_legs(scene: Scene, obj: str, region: str) -> list[np.ndarray]:
         return min([np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0))
                     for lo, hi in boxes] + [room])
 
-    half = np.abs(scene.mat(region) @ scene.site_size(region))[:2] * 0.8  # LIBERO's extent
+    half = np.abs(scene.mat(region) @ scene.site_size(region))[:2] * 0.8  # inside LIBERO's test
     grid = scene.pos(region)[:2] + np.stack(np.meshgrid(*[np.linspace(-1, 1, 5)] * 2), -1
                                             ).reshape(-1, 2) * half
     goal = max(grid, key=lambda p: (gap(p), -np.linalg.norm(p - scene.pos(region)[:2])))
