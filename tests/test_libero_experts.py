@@ -3,11 +3,15 @@ suite's own env (LIBERO's protocol: the fixed init state, the settle steps, the 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from suites import get_suite
 from suites.libero.experts import EXPERT_TASKS, make_expert
 from suites.libero.experts.coverage import LIBERO_OBJECT
+from suites.libero.experts.planner import _push_legs
+from suites.libero.experts.scene import Scene, hand_down
+from suites.libero.experts.skills import facing, nearer_half_turn, turn_angle
 from suites.libero.tasks import suite_tasks
 
 
@@ -48,3 +52,60 @@ def test_expert_turns_a_knob_from_a_fixed_init_state():
     task = suite_tasks("libero_goal")[7]  # turn on the stove: the articulated family
     assert task == "turn_on_the_stove"
     assert _solves(task, init_state=2)
+
+
+def test_front_grasp_takes_the_half_turn_the_wrist_reaches():
+    # A handle facing -y: the plain front grasp is half a turn from the hand's home pose (where
+    # the controller's orientation error vanishes, and past the wrist's limit); its twin is not.
+    home = hand_down(0.0)
+    front = facing(np.array([0.0, -1.0, 0.0]), np.pi / 2)
+    chosen = nearer_half_turn(front, home)
+    assert turn_angle(front, home) == pytest.approx(np.pi)
+    assert turn_angle(chosen, home) == pytest.approx(np.pi / 2)
+    np.testing.assert_allclose(chosen[:, 2], front[:, 2])  # same pointing direction
+
+
+@pytest.fixture(scope="module")
+def plate_env():
+    env = get_suite("libero").make_env("push_the_plate_to_the_front_of_the_stove")
+    yield env
+    env.close()
+
+
+def test_evaluation_reset_places_fixtures_the_same_whatever_ran_before(plate_env):
+    env = plate_env
+    model = env.env.sim.model
+    cabinet = model.body_name2id("wooden_cabinet_1_main")
+    saved = np.random.get_state()
+    env.reset(3)
+    first = model.body_pos[cabinet].copy(), model.body_quat[cabinet].copy()
+    env.reset(7)
+    np.random.seed(123)  # the caller's RNG must not matter either
+    env.reset(3)
+    np.testing.assert_array_equal(model.body_pos[cabinet], first[0])
+    np.testing.assert_array_equal(model.body_quat[cabinet], first[1])
+    np.random.set_state(saved)
+
+
+def _distance_to_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    return float(np.linalg.norm(np.maximum(np.maximum(lo - points, points - hi), 0.0), axis=1).min())
+
+
+def _polyline(start: np.ndarray, legs: list[np.ndarray]) -> np.ndarray:
+    stops = [start, *legs]
+    return np.concatenate([a + np.linspace(0, 1, 50)[:, None] * (b - a)
+                           for a, b in zip(stops, stops[1:])])
+
+
+def test_plate_push_ends_inside_its_region_going_around_the_cream_cheese(plate_env):
+    plate_env.reset(0)
+    scene = Scene(plate_env.env)
+    region = "main_table_stove_front_region"
+    legs = _push_legs(scene, "plate_1", region)
+    half = np.abs(scene.mat(region) @ scene.site_size(region))[:2]
+    assert np.all(np.abs(legs[-1] - scene.pos(region)[:2]) <= half)  # LIBERO's region test
+    start = scene.pos("plate_1")[:2]
+    lo, hi = (b[:2] for b in scene.box("cream_cheese_1"))
+    straight = _distance_to_box(_polyline(start, [legs[-1]]), lo, hi)
+    chosen = _distance_to_box(_polyline(start, legs), lo, hi)
+    assert len(legs) == 2 and chosen > straight + 0.03  # one turn, well clear of the cheese

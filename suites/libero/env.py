@@ -2,7 +2,8 @@
 
 Episodes (`reset(key)`):
   key < FRESH_PLACEMENT  LIBERO's fixed init state `key mod 50` from the task's init file, set
-                         after a reset as LIBERO's evaluation does (evaluation episode i uses i).
+                         after a reset as LIBERO's evaluation does (evaluation episode i uses i);
+                         the reset's fixture placement is seeded by the key, as below.
   key >= FRESH_PLACEMENT a fresh scene from LIBERO's own placement sampler, seeded by the key
                          (demo and held-out episodes: the distribution LIBERO drew its init
                          states from, but never one of the 50 evaluation states).
@@ -106,19 +107,23 @@ class LiberoTaskEnv(TaskEnv):
 
     def start(self, key: int) -> None:
         """The episode's initial sim state, before the settle steps."""
-        if is_spatial(key):
+        # LIBERO's samplers draw from numpy's global RNG: seed it for this reset only. Fixtures
+        # (cabinets, stoves) are placed by writing the model's body poses, which the flattened
+        # init state does not hold: unseeded, an init state's cabinet would sit wherever the
+        # previous reset's draw left it (up to 1 cm and 2 degrees apart, enough to move a bowl
+        # that starts in its drawer). A spatial episode's fixtures are its init state's.
+        seed = key & ((1 << INIT_INDEX_BITS) - 1) if is_spatial(key) else key
+        saved = np.random.get_state()
+        np.random.seed(seed % (1 << 32))
+        try:
             self.env.reset()
+        finally:
+            np.random.set_state(saved)
+        if is_spatial(key):
             state = self.spatial_state(key)
         elif key < FRESH_PLACEMENT:
-            self.env.reset()
             state = init_states(self.task.name)[key % NUM_INIT_STATES]
-        else:  # LIBERO's samplers draw from numpy's global RNG: seed it for this reset only
-            saved = np.random.get_state()
-            np.random.seed(key % (1 << 32))
-            try:
-                self.env.reset()
-            finally:
-                np.random.set_state(saved)
+        else:
             state = self.sim_state()
         # what the flattened state leaves out (the solver's warm start, the last controls)
         # would carry the previous episode into this one: clear it, so a key gives one episode

@@ -5,24 +5,47 @@ from __future__ import annotations
 import numpy as np
 
 from suites.libero.experts.scene import Scene
-from suites.libero.experts.skills import Grasp, Phase, pick, place, slide, turn
+from suites.libero.experts.skills import GRIPPER_SPAN, Grasp, Phase, pick, place, push, slide, turn
 
 CARRY_CLEARANCE = 0.07  # the carried object's bottom above the higher of start and goal surface
 SLIDE = 2  # MuJoCo's mjJNT_SLIDE
 RELEASE_GAP = 0.012  # the object's bottom above its resting surface when the hand opens
+DRAWER_MARGIN = 0.015  # an object dropped in a drawer stays this far inside its front wall
+FLAT = 0.035  # a wide object lower than this (a plate) is pushed, not picked
+PUSH_SAMPLE = 0.01  # spacing of the checks along a push path
+PUSH_MARGIN = 0.01  # what a pushed object should keep from others on its way
 
 
-def _placement(scene: Scene, relation: str, target: str):
+def _placement(scene: Scene, relation: str, obj: str, target: str):
     """(xy function, resting-height function) for putting something in/on `target`."""
     if scene.is_site(target):
         size = scene.site_size(target)
         xy = lambda: scene.pos(target)[:2]  # noqa: E731
-        if _is_drawer(scene, target):  # drop it in just above the drawer region's centre
-            return xy, lambda: scene.pos(target)[2] + RELEASE_GAP
+        if _is_drawer(scene, target):  # drop it in just above the drawer's floor
+            return _drawer_xy(scene, target, obj), lambda: scene.pos(target)[2] + RELEASE_GAP
         if relation == "in":
             return xy, lambda: scene.pos(target)[2] + size[2] + RELEASE_GAP
         return xy, lambda: scene.pos(target)[2] + RELEASE_GAP
     return (lambda: scene.pos(target)[:2]), lambda: scene.box(target)[1][2] + RELEASE_GAP
+
+
+def _drawer_xy(scene: Scene, region: str, obj: str):
+    """Where to drop an object in a drawer's region: as far out toward the drawer's front as
+    the region holds it (the region's front edge is the front wall), since the back of an open
+    drawer stays under the cabinet's top."""
+    axis, _, _ = scene.joint(scene.joint_name(region))
+    props = scene.thing(scene.site_parent(region)).object_properties["articulation"]
+    out = axis * np.sign(np.mean(props["default_open_ranges"])
+                         - np.mean(props["default_close_ranges"]))
+    out[2] = 0.0
+    out /= np.linalg.norm(out)
+    # the region's half-extent along `out`, taken as LIBERO's containment test takes it
+    reach = np.abs(scene.mat(region) @ scene.site_size(region)) @ np.abs(out)
+    radius = scene.footprint(obj)[1] / 2
+
+    def xy():
+        return scene.pos(region)[:2] + out[:2] * max(reach - radius - DRAWER_MARGIN, 0.0)
+    return xy
 
 
 def _is_drawer(scene: Scene, target: str) -> bool:
@@ -33,19 +56,64 @@ def _is_drawer(scene: Scene, target: str) -> bool:
     return int(scene.model.jnt_type[joint]) == SLIDE
 
 
+def _pushable(scene: Scene, obj: str, target: str) -> bool:
+    """A flat, wide object going to a region of the surface it already stands on."""
+    lo, hi = scene.box(obj)
+    return (scene.is_site(target) and hi[2] - lo[2] < FLAT
+            and scene.footprint(obj)[0] > GRIPPER_SPAN
+            and abs(scene.pos(target)[2] - lo[2]) < FLAT)
+
+
+def _push_legs(scene: Scene, obj: str, region: str) -> list[np.ndarray]:
+    """Where in the region to push the object (the point of it furthest from other things,
+    up to the room the object needs), and the way there: straight, or with one turn (x first
+    or y first), whichever passes the fewest times too near other things on the surface."""
+    start = scene.pos(obj)[:2]
+    room = scene.footprint(obj)[1] / 2 + PUSH_MARGIN
+    bottom = scene.box(obj)[0][2]
+    boxes = [scene.box(o) for o in [*scene.env.objects_dict, *scene.env.fixtures_dict]
+             if o != obj and o in scene.env.obj_body_id]
+    boxes = [(lo[:2], hi[:2]) for lo, hi in boxes if hi[2] > bottom + 0.01 and lo[2] < bottom + 0.05]
+
+    def gap(p):
+        return min([np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0))
+                    for lo, hi in boxes] + [room])
+
+    half = np.abs(scene.mat(region) @ scene.site_size(region))[:2] * 0.8  # inside LIBERO's test
+    grid = scene.pos(region)[:2] + np.stack(np.meshgrid(*[np.linspace(-1, 1, 5)] * 2), -1
+                                            ).reshape(-1, 2) * half
+    goal = max(grid, key=lambda p: (gap(p), -np.linalg.norm(p - scene.pos(region)[:2])))
+
+    def hits(legs):
+        count, prev = 0, start
+        for end in legs:
+            n = max(int(np.linalg.norm(end - prev) / PUSH_SAMPLE), 1)
+            count += sum(gap(prev + f * (end - prev)) < room for f in np.linspace(0, 1, n + 1))
+            prev = end
+        return count
+
+    ways = [[goal], [np.array([start[0], goal[1]]), goal], [np.array([goal[0], start[1]]), goal]]
+    return min(ways, key=hits)
+
+
 def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
     relation = goal[0]
+    if relation == "on" and _pushable(scene, goal[1], goal[2]):
+        return push(scene, goal[1], _push_legs(scene, goal[1], goal[2]), lambda: scene.check(goal))
     if relation in ("in", "on"):
         obj, target = goal[1], goal[2]
+        drawer = _is_drawer(scene, target)
+        if drawer and not scene.check(["open", target]):
+            # open it first; the pick is planned once it is open (it may then be in the way)
+            return plan_goal(scene, ["open", target])
         grasp = Grasp.plan(scene, obj)
-        xy, rest_z = _placement(scene, relation, target)
-        bottom = scene.box(obj)[0][2]
-        travel = max(bottom, rest_z()) + CARRY_CLEARANCE + grasp.below
+        xy, rest_z = _placement(scene, relation, obj, target)
+        bottom = scene.support_top(obj)  # from inside a drawer: above its walls
+        into = scene.body_top(scene.model.joint(scene.joint_name(target)).bodyid[0]) if drawer \
+            else rest_z()  # into a drawer: over its walls
+        travel = max(bottom, rest_z(), into) + CARRY_CLEARANCE + grasp.below
         travel = max(travel, scene.eef_pos()[2] - 0.05)
-        first = []
-        if _is_drawer(scene, target) and not scene.check(["open", target]):
-            first = plan_goal(scene, ["open", target])
-        return first + pick(scene, obj, grasp, travel) + place(scene, obj, grasp, xy, rest_z, travel)
+        return pick(scene, obj, grasp, travel) + place(scene, obj, grasp, xy, rest_z, travel)
     if relation in ("open", "close"):
         target = goal[1]
         joint = scene.joint_name(target)

@@ -90,9 +90,12 @@ class Scene:
 
     def _corners(self, name: str) -> np.ndarray:
         """World corners of the boxes around the object's collision geoms."""
+        return self._geom_corners(self._collision_geoms(name))
+
+    def _geom_corners(self, geoms) -> np.ndarray:
         signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
         out = []
-        for g in self._collision_geoms(name):
+        for g in geoms:
             c, h = self.model.geom_aabb[g][:3], self.model.geom_aabb[g][3:]
             rot = self.data.geom_xmat[g].reshape(3, 3)
             out.append(self.data.geom_xpos[g] + (c + signs * h) @ rot.T)
@@ -102,6 +105,28 @@ class Scene:
         """World axis-aligned bounds (low, high) of an object's collision geometry."""
         pts = self._corners(name)
         return pts.min(0), pts.max(0)
+
+    def support_top(self, name: str) -> float:
+        """The highest collision point of the bodies the object touches, the robot's excepted:
+        what a lift must clear (a drawer's walls around a bowl in it, not just its floor)."""
+        m, d = self.model, self.data
+        own = _descendants(m, self.body_id(name))
+        robot = _descendants(m, m.body(self.env.robots[0].robot_model.root_body).id)
+        touching = set()
+        for c in d.contact[:d.ncon]:
+            b1, b2 = int(m.geom_bodyid[c.geom1]), int(m.geom_bodyid[c.geom2])
+            for mine, other in ((b1, b2), (b2, b1)):
+                if mine in own and other not in own and other not in robot:
+                    touching.add(other)
+        bottom = float(self.box(name)[0][2])
+        return max([bottom, *(self.body_top(b) for b in touching)])
+
+    def body_top(self, body: int) -> float:
+        """The highest point of one body's own collision geoms (not its children's)."""
+        m = self.model
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        return float(self._geom_corners(geoms)[:, 2].max()) if geoms else -np.inf
 
     def footprint(self, name: str) -> tuple[float, float, float]:
         """(narrow width, long width, yaw of the narrow direction) of the object seen from above.

@@ -19,6 +19,11 @@ MAX_PHASE_STEPS = 60
 FINGER_REACH = 0.027  # the palm sits about 3 cm above the grip point: grip no deeper
 HELD_DRIFT = 0.03  # how far an object may sit from its grip point and still count as held
 GRIPPER_SPAN = 0.075  # widest thing the open hand takes in across its fingers
+PUSH_DEPTH = -0.01  # the eef target below a pushed object's bottom: pressing on its floor
+PUSH_BACKSET = 0.02  # fingers go in this far behind the object's centre, against the push
+PUSH_CONTACT = 0.03  # the hand from the centre where it meets the rim ahead, from inside
+PUSH_LEAD = 0.04  # how far past that contact the hand is aimed
+PUSH_TOL = 0.015  # a push leg ends with the object's centre this close to its end point
 
 
 @dataclass
@@ -170,6 +175,19 @@ def facing(approach: np.ndarray, tilt: float) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
+def turn_angle(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle (rad) of the rotation from orientation `a` to `b`."""
+    return float(np.arccos(np.clip((np.trace(a.T @ b) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def nearer_half_turn(orient: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """`orient`, or the same grasp turned half a turn about the pointing axis (the hand is
+    symmetric), whichever is the smaller turn from `current`: the other can lie past the
+    wrist's joint limit, and a half turn away is where the controller's error vanishes."""
+    flipped = orient @ np.diag([-1.0, -1.0, 1.0])
+    return min((orient, flipped), key=lambda m: turn_angle(m, current))
+
+
 def slide(scene: Scene, joint: str, target_q: float, opening: bool,
           done: Callable[[], bool]) -> list[Phase]:
     """Grip a drawer's handle from the front, fingers above and below it, and slide it."""
@@ -178,7 +196,8 @@ def slide(scene: Scene, joint: str, target_q: float, opening: bool,
     direction[2] = 0.0
     direction /= np.linalg.norm(direction)
     front = direction if opening else -direction  # the handle is on the side it opens toward
-    hand = facing(-front, np.pi / 2)  # from the front: other handles may sit right above it
+    # from the front: other handles may sit right above it
+    hand = nearer_half_turn(facing(-front, np.pi / 2), scene.eef_mat())
     orient = lambda: hand  # noqa: E731
     yaw = lambda: 0.0  # noqa: E731
     back = -hand[:, 2]  # from the handle back along the hand's pointing direction
@@ -202,3 +221,49 @@ def slide(scene: Scene, joint: str, target_q: float, opening: bool,
         Phase("let-go", _Here(scene), OPEN, yaw, steps=10, orient=orient),
         Phase("back-off", lambda: handle() + back * 0.10, OPEN, yaw, tol=0.02, orient=orient),
     ]
+
+
+def push(scene: Scene, obj: str, legs: list[np.ndarray], done: Callable[[], bool]) -> list[Phase]:
+    """Push a flat, wide object (a plate) over the table through `legs` (its centre's way
+    points) with closed fingers set down inside its rim: the rim ahead takes the push, so the
+    hand never reaches behind the object, where a cabinet may stand."""
+    lo, hi = scene.box(obj)
+    low, travel = lo[2] + PUSH_DEPTH, hi[2] + 0.08
+    phases: list[Phase] = []
+    start = scene.pos(obj)[:2]
+    for k, end in enumerate(legs):
+        last = k == len(legs) - 1
+        phases += _push_leg(scene, obj, start, end, low, travel if k == 0 else None,
+                            done if last else None)
+        start = end
+    phases.append(Phase("rise", lambda: np.array([*scene.eef_pos()[:2], travel]), CLOSED,
+                        phases[-1].yaw, tol=0.02))
+    return phases
+
+
+def _push_leg(scene: Scene, obj: str, start: np.ndarray, end: np.ndarray, low: float,
+              enter_from: float | None, done: Callable[[], bool] | None) -> list[Phase]:
+    """One straight push; `enter_from`: first set the fingers down inside the rim from there."""
+    u = (end - start) / max(float(np.linalg.norm(end - start)), 1e-6)
+    angle = _wrap_half_turn(float(np.arctan2(u[1], u[0])))  # fingers side by side, across u
+    yaw = lambda: angle  # noqa: E731
+    phases = []
+    if enter_from is not None:
+        entry = lambda: scene.pos(obj)[:2] - u * PUSH_BACKSET  # noqa: E731
+        phases += [Phase("above-object", _at(entry, enter_from), CLOSED, yaw, tol=0.015),
+                   Phase("into-object", _at(entry, low), CLOSED, yaw, tol=0.008, speed=0.5,
+                         stall=True)]
+
+    def finished() -> bool:
+        there = np.linalg.norm(scene.pos(obj)[:2] - end) < PUSH_TOL
+        return bool(there or (done is not None and done()))
+
+    def ahead() -> np.ndarray:  # past the rim on the line from the object's centre to `end`,
+        centre = scene.pos(obj)[:2]  # so a push that drifts sideways is steered back
+        way = end - centre
+        dist = float(np.linalg.norm(way))
+        return centre + (way / dist if dist > 1e-3 else u) * (PUSH_CONTACT + PUSH_LEAD)
+
+    phases.append(Phase("push", _at(ahead, low), CLOSED, yaw, speed=0.4, limit=150,
+                        done=finished))
+    return phases
