@@ -13,8 +13,6 @@ import re
 from dataclasses import dataclass
 
 import torch
-from peft import LoraConfig
-from peft.tuners.lora import LoraModel
 
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
@@ -48,7 +46,7 @@ class LoRA(Method):
             self._pattern = re.compile(c.target)
         except re.error as exc:
             raise ValueError(f"target={c.target!r} is not a regular expression ({exc})") from None
-        self._tuner: LoraModel | None = None
+        self._tuner = None  # peft's LoraModel while a task trains
 
     def target_modules(self, policy: torch.nn.Module) -> list[str]:
         """Names of the Linear layers that `target` selects; an error lists the candidates."""
@@ -64,6 +62,11 @@ class LoRA(Method):
         so the trainer optimizes the adapters alone."""
         names = self.target_modules(ctx.policy)
         exact = "|".join(re.escape(n) for n in names)
+        # imported here: peft brings transformers (over 100 MB resident), which a run of any
+        # other method, importing every registered method, should not pay for
+        from peft import LoraConfig
+        from peft.tuners.lora import LoraModel
+
         config = LoraConfig(r=self.config.rank, lora_alpha=self.config.alpha,
                             lora_dropout=self.config.dropout, bias="none",
                             target_modules=f"^(?:{exact})$")
