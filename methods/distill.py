@@ -29,7 +29,7 @@ REFERENCES = ("previous", "foundation")
 
 @dataclass
 class DistillConfig(MethodConfig):
-    strength: float = 1.0  # lambda (LwF's lambda_o = 1)
+    strength: float = 0.1  # lambda (LwF's lambda_o is 1; mw-quick sweep, docs/methods.md)
     reference: str = "previous"  # previous: the model before this task; foundation: stage 0's
 
 

@@ -21,7 +21,7 @@ from methods.base import Method, MethodConfig, TaskContext, snapshot
 
 @dataclass
 class MergeConfig(MethodConfig):
-    alpha: float = 0.5  # weight of the fine-tuned model (WiSE-FT's mixing coefficient)
+    alpha: float = 0.75  # weight of the fine-tuned model (WiSE-FT's; mw-quick sweep, docs/methods.md)
 
 
 @register_method
