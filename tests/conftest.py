@@ -27,3 +27,19 @@ def make_batch(policy, b=8, seed=0):
         "instruction": torch.randn(b, c.instruction_dim, generator=g),
         "actions": torch.randn(b, c.chunk_size, c.action_dim, generator=g),
     }
+
+
+@pytest.fixture
+def forbid_retraining(monkeypatch):
+    """Call it to make generating demos or training any stage fail from then on: for checks
+    that a rerun only reuses what the first run made."""
+
+    def fail(*args, **kwargs):
+        raise AssertionError("work was redone instead of reused")
+
+    def forbid() -> None:
+        for target in ("harness.demos.generate_demos", "harness.foundation.train_stage",
+                       "harness.runner.train_stage"):
+            monkeypatch.setattr(target, fail)
+
+    return forbid

@@ -64,17 +64,12 @@ def test_mlflow_has_parent_and_child_runs(tiny_run):
     assert {"success_matrix.csv", "metrics.json", "success_matrix.png"} <= artifacts
 
 
-def test_second_run_reuses_demos_foundation_and_stages(tiny_run, monkeypatch):
+def test_second_run_reuses_demos_foundation_and_stages(tiny_run, forbid_retraining):
     root, args = tiny_run
     matrix = root / "results/mw-quick-tiny/sft[learning_curve_every=5]/seed0/success_matrix.csv"
     before = matrix.read_text()
 
-    def fail(*a, **k):
-        raise AssertionError("work was redone instead of reused")
-
-    monkeypatch.setattr("harness.demos.generate_demos", fail)
-    monkeypatch.setattr("harness.foundation.train_stage", fail)
-    monkeypatch.setattr("harness.runner.train_stage", fail)
+    forbid_retraining()
     assert main(args) == 0
     assert matrix.read_text() == before
     from mlflow.tracking import MlflowClient

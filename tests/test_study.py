@@ -102,7 +102,7 @@ parts:
 """
 
 
-def test_tiny_study_runs_then_resumes_without_training(tmp_path, capsys, monkeypatch):
+def test_tiny_study_runs_then_resumes_without_training(tmp_path, capsys, forbid_retraining):
     path = tmp_path / "tiny.yaml"
     path.write_text(TINY_STUDY)
     args = [f"STUDY={path}", f"results_dir={tmp_path}/results", f"cache_dir={tmp_path}/cache",
@@ -118,12 +118,7 @@ def test_tiny_study_runs_then_resumes_without_training(tmp_path, capsys, monkeyp
                 for label in ("sft", "consft[variant=dft]")}
     assert (base / "report" / "summary.md").exists()
 
-    def fail(*a, **k):
-        raise AssertionError("a finished job was trained again")
-
-    monkeypatch.setattr("harness.demos.generate_demos", fail)
-    monkeypatch.setattr("harness.foundation.train_stage", fail)
-    monkeypatch.setattr("harness.runner.train_stage", fail)
+    forbid_retraining()
     assert study(args) == 0
     assert "all 2 jobs finished; nothing to run" in capsys.readouterr().out
     assert study(args + ["DRY=1"]) == 0
