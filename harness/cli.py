@@ -27,7 +27,7 @@ from harness.config import (
     set_field,
     setting_text,
 )
-from harness.errors import RetainError
+from harness.errors import USER_ERRORS, RetainError
 from harness.executors import available_cores
 from harness.jobs import Job
 from methods import Method, get_method, method_names
@@ -332,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return commands[argv[0]](argv[1:])
-    except RetainError as exc:
+    except USER_ERRORS as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from multiprocessing import get_context
 
 from harness.config import BenchConfig
-from harness.errors import RetainError
+from harness.errors import USER_ERRORS
 
 RAY_RETRIES = 3  # attempts after a lost worker (a Python exception is not retried)
 
@@ -133,7 +133,7 @@ class RayExecutor:
                     yield i, ray.get(done[0])
                 except RayTaskError as exc:
                     cause = exc.cause
-                    raise (cause if isinstance(cause, RetainError) else exc) from None
+                    raise (cause if isinstance(cause, USER_ERRORS) else exc) from None
         finally:
             for ref in running:
                 ray.cancel(ref, force=True)

@@ -20,7 +20,7 @@ import yaml
 
 from harness.cli import Plan, Variant, execute, plan, variant_job_key
 from harness.config import NOT_IN_RUN_KEY, SHARED_BY_SWEEP_POINTS, coerce, parse_overrides
-from harness.errors import RetainError
+from harness.errors import USER_ERRORS, RetainError
 
 STUDY_DIR = Path(__file__).parent / "studies"
 
@@ -128,7 +128,7 @@ def plan_part(part: StudyPart, extra: list[str]) -> PartPlan:
     for run in part.runs:
         try:
             plans.append(plan(part.run_args(run, extra)))
-        except RetainError as exc:
+        except USER_ERRORS as exc:
             raise RetainError(f"study part {part.name!r}, run {run!r}: {exc}") from None
     first = plans[0].cfg
     for run, p in zip(part.runs, plans):

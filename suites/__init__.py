@@ -5,7 +5,16 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
-from suites.base import Observation, StepResult, Suite, TaskEnv, UnknownName, episode_seeds, unknown
+from suites.base import (
+    Observation,
+    StepResult,
+    Suite,
+    SuiteError,
+    TaskEnv,
+    UnknownName,
+    episode_seeds,
+    unknown,
+)
 
 _SUITES: dict[str, str] = {
     # name -> module that defines and registers it; imported lazily (simulators are slow to load)
@@ -41,5 +50,6 @@ def get_suite(name: str) -> Suite:
 
 __all__ = [
     "Suite", "TaskEnv", "StepResult", "Observation", "episode_seeds", "unknown", "UnknownName",
+    "SuiteError",
     "register_suite", "suite_names", "get_suite",
 ]

