@@ -194,6 +194,7 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
               f"{list(dict.fromkeys(v.label for _, v in runs))}, "
               f"seeds {seeds}; {len(keyed)} jobs, executor {cfg.executor} "
               f"({_slots_text(cfg, slots)})", flush=True)
+        make_missing_demos(cfg, suite)
         data = prepare_data(cfg, suite)
         print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
         jobs = []
@@ -289,6 +290,26 @@ def _slots_text(cfg: BenchConfig, slots) -> str:
         return "Ray tasks" + (f", {cfg.jobs} at once" if cfg.jobs else "")
     each = "evaluation worker" + ("s" if slots.eval_workers != 1 else "")
     return f"{slots.parallel} at once, {slots.eval_workers} {each} each"
+
+
+def make_missing_demos(cfg, suite) -> None:
+    """The demo files not cached yet, one worker process per core (a benchmark's first run is
+    mostly expert rollouts: LIBERO's nine libero-quick tasks took 9 min in one process). The
+    serial executor leaves them to `prepare_data`, one after another in this process."""
+    from harness.data import make_demo_file, missing_demo_jobs
+    from harness.executors import LocalExecutor, available_cores
+
+    jobs = missing_demo_jobs(cfg, suite)
+    workers = min(available_cores(), len(jobs))
+    if cfg.executor == "serial" or workers < 2:
+        return
+    start, pool = time.time(), LocalExecutor(workers)
+    try:
+        for done, (i, n) in enumerate(pool.run(make_demo_file, jobs), 1):
+            print(f"[retain] {jobs[i].label}: {n} episodes [{done}/{len(jobs)} files, "
+                  f"{time.time() - start:.0f}s]", flush=True)
+    finally:
+        pool.close()
 
 
 def variant_job_key(variant: Variant, suite, seed: int) -> str:

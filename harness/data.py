@@ -10,10 +10,17 @@ import numpy as np
 
 from harness.config import BenchConfig
 from harness.datasets import TrainingData, chunk_episodes
-from harness.demos import DemoSpec, Episode, load_or_generate, read_demo_file, write_demo_file
+from harness.demos import (
+    DemoSpec,
+    Episode,
+    cached_demo_path,
+    load_or_generate,
+    read_demo_file,
+    write_demo_file,
+)
 from harness.errors import RetainError
 from policies.text_encoder import embed_instructions, tokenize_instructions
-from suites import Suite
+from suites import Suite, get_suite
 
 
 @dataclass
@@ -33,6 +40,37 @@ def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec
                     num_demos=n, max_episode_steps=suite.step_limit(task, cfg.max_episode_steps),
                     cameras=cfg.cameras, image_size=cfg.image_size,
                     source=user_file(cfg, suite, task) if cfg.demos_dir else "")
+
+
+@dataclass(frozen=True)
+class DemoJob:
+    """One missing demo file, made in a worker process (names, not objects: it is pickled)."""
+
+    suite: str
+    spec: DemoSpec
+    cache_dir: str
+    cpus: int = 1
+
+    @property
+    def label(self) -> str:
+        return f"demos {self.spec.task} ({self.spec.split})"
+
+
+def missing_demo_jobs(cfg: BenchConfig, suite: Suite) -> list[DemoJob]:
+    """The demo files the expert still has to make (none where demos come from demos_dir)."""
+    if cfg.demos_dir:
+        return []
+    specs = [demo_spec(cfg, suite, task, split) for task in cfg.foundation_tasks + cfg.stream_tasks
+             for split in ("demo", "heldout")]
+    return [DemoJob(suite.name, spec, cfg.cache_dir) for spec in specs
+            if not cached_demo_path(Path(cfg.cache_dir), spec).exists()]
+
+
+def make_demo_file(job: DemoJob, *_shared) -> int:
+    """Generate and cache one demo file; its episodes are seeded by their keys alone, so the
+    file is the same whichever process makes it and however many run at once."""
+    episodes = load_or_generate(get_suite(job.suite), job.spec, Path(job.cache_dir), progress=False)
+    return len(episodes)
 
 
 def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:

@@ -178,9 +178,13 @@ def read_demo_file(path: Path, expected: DemoSpec | None = None) -> tuple[str, l
         raise DemoFileError(f"demo file {path} is corrupt ({reason}): delete it to regenerate") from None
 
 
+def cached_demo_path(cache_dir: Path, spec: DemoSpec) -> Path:
+    return Path(cache_dir) / "demos" / spec.suite / spec.filename()
+
+
 def load_or_generate(suite: Suite, spec: DemoSpec, cache_dir: Path, progress: bool = True) -> list[Episode]:
     """The task's demos from the cache, generating and caching them the first time."""
-    path = Path(cache_dir) / "demos" / spec.suite / spec.filename()
+    path = cached_demo_path(cache_dir, spec)
     if path.exists():
         return read_demo_file(path, spec)[1]
     episodes = generate_demos(suite, spec, progress=progress)

@@ -92,3 +92,32 @@ def test_same_seed_same_demos(tmp_path):
                     num_demos=1, max_episode_steps=150)
     a, b = generate_demos(suite, spec, progress=False), generate_demos(suite, spec, progress=False)
     np.testing.assert_array_equal(a[0].obs["state"], b[0].obs["state"])
+
+
+def test_demo_files_made_in_worker_processes_equal_those_made_in_this_one(tmp_path, monkeypatch,
+                                                                           capsys):
+    import harness.executors
+    from harness.cli import make_missing_demos, plan
+    from harness.data import missing_demo_jobs
+    from suites import get_suite
+
+    monkeypatch.setattr(harness.executors, "available_cores", lambda: 2)  # CI may have one
+    workers = plan(["PROFILE=tiny", "executor=local", f"cache_dir={tmp_path / 'workers'}"]).cfg
+    here = plan(["PROFILE=tiny", "executor=serial", f"cache_dir={tmp_path / 'here'}"]).cfg
+    suite = get_suite(workers.suite)
+    jobs = missing_demo_jobs(workers, suite)
+    assert len(jobs) == 2 * len(workers.foundation_tasks + workers.stream_tasks)
+
+    make_missing_demos(here, suite)  # the serial executor leaves them to this process
+    assert len(missing_demo_jobs(here, suite)) == len(jobs)
+    make_missing_demos(workers, suite)
+    assert missing_demo_jobs(workers, suite) == []
+    assert capsys.readouterr().out.count("[retain] demos ") == len(jobs)
+    for job in jobs:
+        made_here = load_or_generate(suite, job.spec, tmp_path / "here", progress=False)
+        _, made_there = read_demo_file(tmp_path / "workers" / "demos" / job.spec.suite
+                                       / job.spec.filename(), job.spec)
+        assert [e.seed for e in made_here] == [e.seed for e in made_there]
+        for a, b in zip(made_here, made_there):
+            np.testing.assert_array_equal(a.actions, b.actions)
+            np.testing.assert_array_equal(a.obs["state"], b.obs["state"])
