@@ -43,6 +43,16 @@ class Scene:
     def eef_mat(self) -> np.ndarray:
         return np.array(self.data.site_xmat[self.env.robots[0].eef_site_id["right"]]).reshape(3, 3)
 
+    def wrist_offset(self) -> np.ndarray:
+        """The centre of the box around the arm's last link, in the hand's (eef site's) frame:
+        the link turns with the hand and sticks out further on one side of it."""
+        m, robot = self.model, self.env.robots[0]
+        body = m.jnt_bodyid[m.joint(robot.robot_joints[-1]).id]
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        local = (self._geom_corners(geoms) - self.eef_pos()) @ self.eef_mat()
+        return (local.min(0) + local.max(0)) / 2
+
     def is_grasped(self, name: str) -> bool:
         robot = self.env.robots[0]
         return bool(self.env._check_grasp(robot.gripper["right"], self.thing(name)))
@@ -92,6 +102,15 @@ class Scene:
         """World corners of the boxes around the object's collision geoms."""
         return self._geom_corners(self._collision_geoms(name))
 
+    def part_box(self, body: int) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned bounds of one body's collision geometry and its children's (a
+        drawer and what is fixed to it)."""
+        m = self.model
+        bodies = _descendants(m, body)
+        pts = self._geom_corners([g for g in range(m.ngeom) if m.geom_bodyid[g] in bodies
+                                  and (m.geom_contype[g] or m.geom_conaffinity[g])])
+        return pts.min(0), pts.max(0)
+
     def _geom_corners(self, geoms) -> np.ndarray:
         signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
         out = []
@@ -105,6 +124,22 @@ class Scene:
         """World axis-aligned bounds (low, high) of an object's collision geometry."""
         pts = self._corners(name)
         return pts.min(0), pts.max(0)
+
+    def part_boxes(self, skip: str) -> list[tuple[np.ndarray, np.ndarray]]:
+        """World boxes of every body (its own collision geoms) of the objects and fixtures
+        but `skip`: a cabinet's drawer and its top, not one box around the whole cabinet."""
+        m = self.model
+        out = []
+        for name in [*self.env.objects_dict, *self.env.fixtures_dict]:
+            if name == skip or name not in self.env.obj_body_id:
+                continue
+            for body in sorted(_descendants(m, self.body_id(name))):
+                geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                         and (m.geom_contype[g] or m.geom_conaffinity[g])]
+                if geoms:
+                    pts = self._geom_corners(geoms)
+                    out.append((pts.min(0), pts.max(0)))
+        return out
 
     def support_top(self, name: str) -> float:
         """The highest collision point of the bodies the object touches, the robot's excepted:
