@@ -15,8 +15,7 @@ FLAT = 0.035  # a wide object lower than this (a plate) is pushed, not picked
 PUSH_SAMPLE = 0.01  # spacing of the checks along a push path
 PUSH_MARGIN = 0.01  # what a pushed object should keep from others on its way
 OVERHANG = 0.15  # a part this little above an object's top hangs over it (the hand's height)
-HAND_ROOM = 0.03  # a part this near an object's outline (seen from above) hangs over it too;
-#                   an object withdrawn from under it ends this far clear of it
+HAND_ROOM = 0.03  # an object withdrawn from under a part ends this far clear of it
 WITHDRAW_STEP, WITHDRAW_MAX = 0.005, 0.2  # m
 UNDER_GAP = 0.02  # what a withdrawn object's top keeps from the bottom of what hangs over it
 
@@ -108,11 +107,12 @@ def _box_gap(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndar
 
 def _overhangs(scene: Scene, obj: str) -> list[tuple[np.ndarray, np.ndarray]]:
     """Boxes of the parts that hang low over the object (an open drawer over a bowl in
-    front of it): the hand coming down to it passes beside them."""
+    front of it), overlapping it seen from above: the hand coming down to it passes beside
+    them, and it cannot be lifted straight up."""
     lo, hi = scene.box(obj)
     return [(a, b) for a, b in scene.part_boxes(obj)
             if hi[2] - 0.005 <= a[2] < hi[2] + OVERHANG
-            and _box_gap(lo[:2], hi[:2], a[:2], b[:2]) < HAND_ROOM]
+            and np.all(a[:2] < hi[:2]) and np.all(lo[:2] < b[:2])]
 
 
 def _withdrawal(scene: Scene, obj: str, grasp: Grasp,
