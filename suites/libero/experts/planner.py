@@ -111,7 +111,7 @@ def _overhangs(scene: Scene, obj: str) -> list[tuple[np.ndarray, np.ndarray]]:
     them, and it cannot be lifted straight up."""
     lo, hi = scene.box(obj)
     return [(a, b) for a, b in scene.part_boxes(obj)
-            if hi[2] - 0.005 <= a[2] < hi[2] + OVERHANG
+            if hi[2] - 0.005 <= a[2] < hi[2] + OVERHANG  # above it (to within 5 mm)
             and np.all(a[:2] < hi[:2]) and np.all(lo[:2] < b[:2])]
 
 
@@ -122,12 +122,12 @@ def _withdrawal(scene: Scene, obj: str, grasp: Grasp,
     lo, hi = scene.box(obj)
     way = grasp.offset[:2] - ((lo + hi) / 2 - scene.pos(obj))[:2]
     way /= np.linalg.norm(way)
-    shift = way * 0.0
-    for t in np.arange(0.0, WITHDRAW_MAX, WITHDRAW_STEP):
-        shift = t * way
-        if all(_box_gap(lo[:2] + shift, hi[:2] + shift, a[:2], b[:2]) >= HAND_ROOM
-               for a, b in over):
-            break
+
+    def clear(shift):
+        return all(_box_gap(lo[:2] + shift, hi[:2] + shift, a[:2], b[:2]) >= HAND_ROOM
+                   for a, b in over)
+    shifts = [t * way for t in np.arange(0.0, WITHDRAW_MAX, WITHDRAW_STEP)]
+    shift = next((s for s in shifts if clear(s)), shifts[-1])
     rise = min(a[2] for a, _ in over) - hi[2] - UNDER_GAP
     return max(float(rise), 0.0), shift
 
@@ -140,8 +140,7 @@ def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
         obj, target = goal[1], goal[2]
         drawer = _is_drawer(scene, target)
         if drawer and not scene.check(["open", target]):
-            # open it first (moving the object out of its way if need be); the pick is
-            # planned once it is open (the drawer may then be in the way)
+            # open it first; the pick is planned once it is open (it may then be in the way)
             return plan_goal(scene, ["open", target])
         over = _overhangs(scene, obj)
         middle = np.mean([(a + b) / 2 for a, b in over], axis=0) if over else None

@@ -107,8 +107,10 @@ def _wrist_away(scene: Scene, toward: np.ndarray) -> float:
     that turns the wrist's bulk (its last link sticks out further on one side of the hand)
     away from `toward`: under an open drawer, the other hits it."""
     bulk = scene.wrist_offset()
-    return max((np.pi / 2, -np.pi / 2), key=lambda yaw: -float((hand_down(yaw) @ bulk)[:2]
-                                                             @ toward))
+
+    def away(yaw: float) -> float:
+        return -float((hand_down(yaw) @ bulk)[:2] @ toward)
+    return max((np.pi / 2, -np.pi / 2), key=away)
 
 
 def _at(xy: Callable[[], np.ndarray], z) -> Callable[[], np.ndarray]:
