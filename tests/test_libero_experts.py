@@ -8,10 +8,10 @@ import pytest
 
 from suites import get_suite
 from suites.libero.experts import EXPERT_TASKS, make_expert
-from suites.libero.experts.coverage import LIBERO_OBJECT
-from suites.libero.experts.planner import _push_legs
+from suites.libero.experts.coverage import LIBERO_GOAL, LIBERO_OBJECT
+from suites.libero.experts.planner import HAND_ROOM, _box_gap, _overhangs, _push_legs, _withdrawal
 from suites.libero.experts.scene import Scene, hand_down
-from suites.libero.experts.skills import facing, nearer_half_turn, turn_angle
+from suites.libero.experts.skills import Grasp, facing, nearer_half_turn, turn_angle
 from suites.libero.tasks import suite_tasks
 
 
@@ -22,9 +22,10 @@ def test_uncovered_task_raises_one_line_key_error():
     assert "no_such_task_in_libero" in message and "\n" not in message
 
 
-def test_libero_object_suite_is_covered():
-    assert set(LIBERO_OBJECT) <= EXPERT_TASKS
+def test_libero_object_and_goal_suites_are_covered():
+    assert set(LIBERO_OBJECT) | set(LIBERO_GOAL) <= EXPERT_TASKS
     assert suite_tasks("libero_object") == list(LIBERO_OBJECT)
+    assert suite_tasks("libero_goal") == list(LIBERO_GOAL)
 
 
 def _solves(task: str, init_state: int) -> bool:
@@ -52,6 +53,11 @@ def test_expert_turns_a_knob_from_a_fixed_init_state():
     task = suite_tasks("libero_goal")[7]  # turn on the stove: the articulated family
     assert task == "turn_on_the_stove"
     assert _solves(task, init_state=2)
+
+
+def test_expert_puts_a_bowl_into_the_drawer_that_opens_over_it():
+    # the open top drawer hangs over the bowl in front of the cabinet
+    assert _solves("open_the_top_drawer_and_put_the_bowl_inside", init_state=1)
 
 
 def test_front_grasp_takes_the_half_turn_the_wrist_reaches():
@@ -109,3 +115,27 @@ def test_plate_push_ends_inside_its_region_going_around_the_cream_cheese(plate_e
     straight = _distance_to_box(_polyline(start, [legs[-1]]), lo, hi)
     chosen = _distance_to_box(_polyline(start, legs), lo, hi)
     assert len(legs) == 2 and chosen > straight + 0.03  # one turn, well clear of the cheese
+
+
+def test_bowl_under_an_open_drawer_is_pinched_wrist_away_and_withdrawn_before_the_lift(plate_env):
+    plate_env.reset(0)  # the bowl stands in front of the cabinet's top drawer
+    scene = Scene(plate_env.env)
+    bowl = "akita_black_bowl_1"
+    assert _overhangs(scene, bowl) == []  # closed, the drawer is beside the bowl
+    sim = plate_env.env.sim
+    sim.data.qpos[sim.model.get_joint_qpos_addr("wooden_cabinet_1_top_level")] = -0.15  # open
+    sim.forward()
+    over = _overhangs(scene, bowl)
+    assert len(over) == 1
+    drawer_lo, drawer_hi = over[0]
+    toward = ((drawer_lo + drawer_hi) / 2 - scene.pos(bowl))[:2]
+    grasp = Grasp.plan(scene, bowl, wrist_from=(drawer_lo + drawer_hi) / 2)
+    plain = Grasp.plan(scene, bowl)
+    assert grasp.yaw == pytest.approx(-plain.yaw)  # the half-turn twin of the plain rim pinch
+    assert (hand_down(grasp.yaw) @ scene.wrist_offset())[:2] @ toward < 0  # wrist turned away
+    np.testing.assert_allclose(grasp.offset, plain.offset)  # the same grip point
+    rise, shift = _withdrawal(scene, bowl, grasp, over)
+    lo, hi = scene.box(bowl)
+    assert 0 < rise and hi[2] + rise < drawer_lo[2]  # lifted off the table, still under it
+    assert shift @ toward < 0  # out toward the grip side, away from the drawer
+    assert _box_gap(lo[:2] + shift, hi[:2] + shift, drawer_lo[:2], drawer_hi[:2]) >= HAND_ROOM

@@ -33,12 +33,11 @@ LIBERO_SPATIAL = (
     "pick_up_the_black_bowl_on_the_wooden_cabinet_and_place_it_on_the_plate",
 )
 
-# Not yet: open_the_top_drawer_and_put_the_bowl_inside (the drawer opens, but then hangs over
-# the bowl: neither the hand nor the wrist gets down to its rim).
 LIBERO_GOAL = (
     "open_the_middle_drawer_of_the_cabinet",
     "put_the_bowl_on_the_stove",
     "put_the_wine_bottle_on_top_of_the_cabinet",
+    "open_the_top_drawer_and_put_the_bowl_inside",
     "put_the_bowl_on_top_of_the_cabinet",
     "push_the_plate_to_the_front_of_the_stove",
     "put_the_cream_cheese_in_the_bowl",

@@ -14,6 +14,10 @@ DRAWER_MARGIN = 0.015  # an object dropped in a drawer stays this far inside its
 FLAT = 0.035  # a wide object lower than this (a plate) is pushed, not picked
 PUSH_SAMPLE = 0.01  # spacing of the checks along a push path
 PUSH_MARGIN = 0.01  # what a pushed object should keep from others on its way
+OVERHANG = 0.15  # a part this little above an object's top hangs over it (the hand's height)
+HAND_ROOM = 0.03  # an object withdrawn from under a part ends this far clear of it
+WITHDRAW_STEP, WITHDRAW_MAX = 0.005, 0.2  # m
+UNDER_GAP = 0.02  # what a withdrawn object's top keeps from the bottom of what hangs over it
 
 
 def _placement(scene: Scene, relation: str, obj: str, target: str):
@@ -96,6 +100,38 @@ def _push_legs(scene: Scene, obj: str, region: str) -> list[np.ndarray]:
     return min(ways, key=hits)
 
 
+def _box_gap(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> float:
+    """The distance between two axis-aligned boxes (0 where they overlap)."""
+    return float(np.linalg.norm(np.maximum(np.maximum(lo_b - hi_a, lo_a - hi_b), 0.0)))
+
+
+def _overhangs(scene: Scene, obj: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Boxes of the parts that hang low over the object (an open drawer over a bowl in
+    front of it), overlapping it seen from above: the hand coming down to it passes beside
+    them, and it cannot be lifted straight up."""
+    lo, hi = scene.box(obj)
+    return [(a, b) for a, b in scene.part_boxes(obj)
+            if hi[2] - 0.005 <= a[2] < hi[2] + OVERHANG  # above it (to within 5 mm)
+            and np.all(a[:2] < hi[:2]) and np.all(lo[:2] < b[:2])]
+
+
+def _withdrawal(scene: Scene, obj: str, grasp: Grasp,
+                over: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, np.ndarray]:
+    """How to take the object out from under `over` before lifting it: (the rise that keeps
+    it under them, the horizontal shift toward the grip side that takes it clear of them)."""
+    lo, hi = scene.box(obj)
+    way = grasp.offset[:2] - ((lo + hi) / 2 - scene.pos(obj))[:2]
+    way /= np.linalg.norm(way)
+
+    def clear(shift):
+        return all(_box_gap(lo[:2] + shift, hi[:2] + shift, a[:2], b[:2]) >= HAND_ROOM
+                   for a, b in over)
+    shifts = [t * way for t in np.arange(0.0, WITHDRAW_MAX, WITHDRAW_STEP)]
+    shift = next((s for s in shifts if clear(s)), shifts[-1])
+    rise = min(a[2] for a, _ in over) - hi[2] - UNDER_GAP
+    return max(float(rise), 0.0), shift
+
+
 def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
     relation = goal[0]
     if relation == "on" and _pushable(scene, goal[1], goal[2]):
@@ -106,14 +142,18 @@ def plan_goal(scene: Scene, goal: list[str]) -> list[Phase]:
         if drawer and not scene.check(["open", target]):
             # open it first; the pick is planned once it is open (it may then be in the way)
             return plan_goal(scene, ["open", target])
-        grasp = Grasp.plan(scene, obj)
+        over = _overhangs(scene, obj)
+        middle = np.mean([(a + b) / 2 for a, b in over], axis=0) if over else None
+        grasp = Grasp.plan(scene, obj, wrist_from=middle)
         xy, rest_z = _placement(scene, relation, obj, target)
         bottom = scene.support_top(obj)  # from inside a drawer: above its walls
         into = scene.body_top(scene.model.joint(scene.joint_name(target)).bodyid[0]) if drawer \
             else rest_z()  # into a drawer: over its walls
         travel = max(bottom, rest_z(), into) + CARRY_CLEARANCE + grasp.below
         travel = max(travel, scene.eef_pos()[2] - 0.05)
-        return pick(scene, obj, grasp, travel) + place(scene, obj, grasp, xy, rest_z, travel)
+        withdraw = _withdrawal(scene, obj, grasp, over) if over else None
+        return (pick(scene, obj, grasp, travel, withdraw)
+                + place(scene, obj, grasp, xy, rest_z, travel))
     if relation in ("open", "close"):
         target = goal[1]
         joint = scene.joint_name(target)

@@ -43,6 +43,14 @@ class Scene:
     def eef_mat(self) -> np.ndarray:
         return np.array(self.data.site_xmat[self.env.robots[0].eef_site_id["right"]]).reshape(3, 3)
 
+    def wrist_offset(self) -> np.ndarray:
+        """The centre of the box around the arm's last link, in the hand's (eef site's) frame:
+        the link turns with the hand and sticks out further on one side of it."""
+        m = self.model
+        body = m.jnt_bodyid[m.joint(self.env.robots[0].robot_joints[-1]).id]
+        local = (self._geom_corners(self._own_geoms(body)) - self.eef_pos()) @ self.eef_mat()
+        return (local.min(0) + local.max(0)) / 2
+
     def is_grasped(self, name: str) -> bool:
         robot = self.env.robots[0]
         return bool(self.env._check_grasp(robot.gripper["right"], self.thing(name)))
@@ -92,6 +100,12 @@ class Scene:
         """World corners of the boxes around the object's collision geoms."""
         return self._geom_corners(self._collision_geoms(name))
 
+    def _own_geoms(self, body: int) -> list[int]:
+        """One body's own collision geoms (not its children's)."""
+        m = self.model
+        return [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
+                and (m.geom_contype[g] or m.geom_conaffinity[g])]
+
     def _geom_corners(self, geoms) -> np.ndarray:
         signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
         out = []
@@ -105,6 +119,21 @@ class Scene:
         """World axis-aligned bounds (low, high) of an object's collision geometry."""
         pts = self._corners(name)
         return pts.min(0), pts.max(0)
+
+    def part_boxes(self, skip: str) -> list[tuple[np.ndarray, np.ndarray]]:
+        """World boxes of every body (its own collision geoms) of the objects and fixtures
+        but `skip`: a cabinet's drawer and its top, not one box around the whole cabinet."""
+        m = self.model
+        out = []
+        for name in [*self.env.objects_dict, *self.env.fixtures_dict]:
+            if name == skip or name not in self.env.obj_body_id:
+                continue
+            for body in sorted(_descendants(m, self.body_id(name))):
+                geoms = self._own_geoms(body)
+                if geoms:
+                    pts = self._geom_corners(geoms)
+                    out.append((pts.min(0), pts.max(0)))
+        return out
 
     def support_top(self, name: str) -> float:
         """The highest collision point of the bodies the object touches, the robot's excepted:
@@ -123,9 +152,7 @@ class Scene:
 
     def body_top(self, body: int) -> float:
         """The highest point of one body's own collision geoms (not its children's)."""
-        m = self.model
-        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
-                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        geoms = self._own_geoms(body)
         return float(self._geom_corners(geoms)[:, 2].max()) if geoms else -np.inf
 
     def footprint(self, name: str) -> tuple[float, float, float]:
@@ -166,20 +193,14 @@ class Scene:
 
     def lever(self, joint: str) -> np.ndarray:
         """A point to push a knob by: its highest parts' geom furthest from the hinge axis."""
-        m = self.model
-        body = m.jnt_bodyid[m.joint(joint).id]
-        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
-                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
-        pos = np.array(self.data.geom_xpos[geoms])
+        body = self.model.jnt_bodyid[self.model.joint(joint).id]
+        pos = np.array(self.data.geom_xpos[self._own_geoms(body)])
         top = pos[pos[:, 2] > pos[:, 2].max() - 0.015]
         _, anchor, _ = self.joint(joint)
         return top[int(np.argmax(np.linalg.norm(top[:, :2] - anchor[:2], axis=1)))]
 
     def handle(self, joint: str, outward: np.ndarray) -> np.ndarray:
         """The collision geom of a joint's moving part that sticks out furthest `outward`."""
-        m = self.model
-        body = m.jnt_bodyid[m.joint(joint).id]
-        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == body
-                 and (m.geom_contype[g] or m.geom_conaffinity[g])]
-        pos = np.array(self.data.geom_xpos[geoms])
+        body = self.model.jnt_bodyid[self.model.joint(joint).id]
+        pos = np.array(self.data.geom_xpos[self._own_geoms(body)])
         return pos[int(np.argmax(pos @ outward))]

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from suites.libero.experts.scene import Scene
+from suites.libero.experts.scene import Scene, hand_down
 
 OPEN, CLOSED = -1.0, 1.0
 MAX_PHASE_STEPS = 60
@@ -77,7 +77,9 @@ class Grasp:
         return test
 
     @classmethod
-    def plan(cls, scene: Scene, obj: str) -> Grasp:
+    def plan(cls, scene: Scene, obj: str, wrist_from: np.ndarray | None = None) -> Grasp:
+        """`wrist_from`: a point the wrist should keep away from (what hangs over the object),
+        where the grasp has a choice (a rim pinch: either of two half-turn twins)."""
         lo, hi = scene.box(obj)
         narrow, wide, narrow_yaw = scene.footprint(obj)
         centre = (lo + hi) / 2
@@ -95,27 +97,49 @@ class Grasp:
             offset = np.array([centre[0] - body[0] - (hi[0] - lo[0]) / 2 + 0.012,
                                centre[1] - body[1], rim_z - body[2]])
             yaw = np.pi / 2
+            if wrist_from is not None:
+                yaw = _wrist_away(scene, wrist_from[:2] - centre[:2])
         return cls(offset, float(yaw), float(body[2] + offset[2] - lo[2]))
+
+
+def _wrist_away(scene: Scene, toward: np.ndarray) -> float:
+    """Of the rim pinch's yaws (+-pi/2, fingers across the rim nearest the robot), the one
+    that turns the wrist's bulk (its last link sticks out further on one side of the hand)
+    away from `toward`: under an open drawer, the other hits it."""
+    bulk = scene.wrist_offset()
+
+    def away(yaw: float) -> float:
+        return -float((hand_down(yaw) @ bulk)[:2] @ toward)
+    return max((np.pi / 2, -np.pi / 2), key=away)
 
 
 def _at(xy: Callable[[], np.ndarray], z) -> Callable[[], np.ndarray]:
     return lambda: np.array([*xy()[:2], z() if callable(z) else z])
 
 
-def pick(scene: Scene, obj: str, grasp: Grasp, travel_z: float) -> list[Phase]:
-    """Above the object at travel height, down to the grip point, close, lift to travel height."""
+def pick(scene: Scene, obj: str, grasp: Grasp, travel_z: float,
+         withdraw: tuple[float, np.ndarray] | None = None) -> list[Phase]:
+    """Above the object at travel height, down to the grip point, close, lift to travel height.
+    `withdraw` (rise, horizontal shift): out from under something first, lifted only `rise`."""
     def grip_point():
         return scene.pos(obj) + grasp.offset
 
     yaw = lambda: grasp.yaw  # noqa: E731
     above = min(travel_z, grip_point()[2] + 0.12)
-    return [
+    held = grasp.holds(scene, obj)
+    phases = [
         Phase("above", _at(grip_point, max(above, grip_point()[2] + 0.06)), OPEN, yaw, tol=0.015),
         Phase("descend", grip_point, OPEN, yaw, tol=0.006, speed=0.6, stall=True),
         Phase("close", _Here(scene), CLOSED, yaw, steps=20, done=scene.fingers_still),
-        Phase("lift", _at(scene.eef_pos, travel_z), CLOSED, yaw, held=grasp.holds(scene, obj), tol=0.02,
-              speed=0.7),
     ]
+    if withdraw is not None:
+        rise, shift = withdraw
+        start = _Here(scene)
+        phases.append(Phase("withdraw", lambda: start() + np.array([*shift[:2], rise]), CLOSED,
+                            yaw, held=held, tol=0.015, speed=0.6))
+    phases.append(Phase("lift", _at(scene.eef_pos, travel_z), CLOSED, yaw, held=held, tol=0.02,
+                        speed=0.7))
+    return phases
 
 
 def place(scene: Scene, obj: str, grasp: Grasp, target_xy: Callable[[], np.ndarray],
