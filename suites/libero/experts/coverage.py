@@ -1,4 +1,4 @@
-"""The LIBERO tasks whose scripted expert was measured to solve them (table: README.md here).
+"""The LIBERO tasks whose scripted expert was measured to solve them (tables: ../README.md).
 
 A task is listed when its expert solved it from the measured init states at the issue's bar
 (80%; 70% for libero_90); others raise KeyError. To try a task, list it here, then measure it:
