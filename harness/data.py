@@ -49,7 +49,6 @@ class DemoJob:
     suite: str
     spec: DemoSpec
     cache_dir: str
-    cpus: int = 1
 
     @property
     def label(self) -> str:
