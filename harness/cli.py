@@ -297,7 +297,7 @@ def make_missing_demos(cfg, suite) -> None:
     mostly expert rollouts: LIBERO's nine libero-quick tasks took 9 min in one process). The
     serial executor leaves them to `prepare_data`, one after another in this process."""
     from harness.data import make_demo_file, missing_demo_jobs
-    from harness.executors import LocalExecutor, available_cores
+    from harness.executors import LocalExecutor
 
     jobs = missing_demo_jobs(cfg, suite)
     workers = min(available_cores(), len(jobs))

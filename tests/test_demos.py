@@ -96,12 +96,12 @@ def test_same_seed_same_demos(tmp_path):
 
 def test_demo_files_made_in_worker_processes_equal_those_made_in_this_one(tmp_path, monkeypatch,
                                                                            capsys):
-    import harness.executors
+    import harness.cli
     from harness.cli import make_missing_demos, plan
     from harness.data import missing_demo_jobs
     from suites import get_suite
 
-    monkeypatch.setattr(harness.executors, "available_cores", lambda: 2)  # CI may have one
+    monkeypatch.setattr(harness.cli, "available_cores", lambda: 2)  # CI may have one
     workers = plan(["PROFILE=tiny", "executor=local", f"cache_dir={tmp_path / 'workers'}"]).cfg
     here = plan(["PROFILE=tiny", "executor=serial", f"cache_dir={tmp_path / 'here'}"]).cfg
     suite = get_suite(workers.suite)
