@@ -65,7 +65,7 @@ def missing_demo_jobs(cfg: BenchConfig, suite: Suite) -> list[DemoJob]:
             if not cached_demo_path(Path(cfg.cache_dir), spec).exists()]
 
 
-def make_demo_file(job: DemoJob, *_shared) -> int:
+def make_demo_file(job: DemoJob) -> int:
     """Generate and cache one demo file; its episodes are seeded by their keys alone, so the
     file is the same whichever process makes it and however many run at once."""
     episodes = load_or_generate(get_suite(job.suite), job.spec, Path(job.cache_dir), progress=False)

@@ -38,8 +38,19 @@ def forbid_retraining(monkeypatch):
         raise AssertionError("work was redone instead of reused")
 
     def forbid() -> None:
+        import harness.data
+
         for target in ("harness.demos.generate_demos", "harness.foundation.train_stage",
                        "harness.runner.train_stage"):
             monkeypatch.setattr(target, fail)
+        find_missing = harness.data.missing_demo_jobs
+
+        def none_missing(*args):  # demo files made in worker processes would escape the patches
+            missing = find_missing(*args)
+            if missing:
+                fail()
+            return missing
+
+        monkeypatch.setattr(harness.data, "missing_demo_jobs", none_missing)
 
     return forbid
