@@ -128,7 +128,8 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
 
         def learning_curve(done: int, task=task, curve_steps=curve_steps, curve=curve) -> None:
             if done % cfg.learning_curve_every == 0 and done < cfg.steps_per_task:
-                result = evaluator.evaluate(policy, [task], data.instructions, derive_seed(seed, "eval"))
+                result = evaluator.evaluate(method.mid_task_policy(policy), [task], data.instructions,
+                                            derive_seed(seed, "eval"))
                 curve_steps.append(done)
                 curve.append(result[task].success_rate)
                 policy.train()

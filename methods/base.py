@@ -103,6 +103,12 @@ class Method:
     def after_task(self, ctx: TaskContext) -> None:
         """Called after training on a task, with the trained policy and the task's data."""
 
+    def mid_task_policy(self, policy: torch.nn.Module) -> torch.nn.Module:
+        """The policy a learning-curve evaluation rolls out while a task trains: by default the
+        policy itself. A method that wraps the policy's layers during a task (LoRA) returns a
+        plain copy, which evaluation workers (they build a plain policy) can load."""
+        return policy
+
     def evaluation_view(self, policy: torch.nn.Module, task: str, stream: list[str]
                         ) -> contextlib.AbstractContextManager:
         """The policy as it should be evaluated on `task` (a foundation task or one of `stream`),

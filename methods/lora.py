@@ -9,6 +9,7 @@ starts fresh adapters on the merged weights. Adapters are peft's (`LoraModel`).
 
 from __future__ import annotations
 
+import copy
 import re
 from dataclasses import dataclass
 
@@ -71,6 +72,13 @@ class LoRA(Method):
                             lora_dropout=self.config.dropout, bias="none",
                             target_modules=f"^(?:{exact})$")
         self._tuner = LoraModel(ctx.policy, config, ADAPTER)
+
+    def mid_task_policy(self, policy: torch.nn.Module) -> torch.nn.Module:
+        """While a task trains: a copy with the adapters merged and removed, under the policy's
+        own parameter names; the training policy keeps its adapters."""
+        if self._tuner is None:
+            return policy
+        return copy.deepcopy(self._tuner).merge_and_unload()
 
     def after_task(self, ctx: TaskContext) -> None:
         """Merge the adapters into the base weights and remove them (nothing at stage 0)."""

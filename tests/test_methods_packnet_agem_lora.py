@@ -193,6 +193,33 @@ def test_lora_trains_adapters_only_and_merges_base_plus_scaled_b_a():
     assert all(p.requires_grad for p in policy.parameters())
 
 
+def test_lora_mid_task_policy_is_a_plain_merged_copy_that_evaluation_workers_load():
+    """A learning-curve evaluation mid-task sends the policy's weights to workers that build a
+    plain policy: LoRA's wrapped names (`base_layer`, `lora_A`) would not load there."""
+    policy, method = _policy(), LoRA(LoRAConfig(rank=2, alpha=6.0))
+    targets = method.target_modules(policy)
+    seen = {}
+
+    def capture(done):
+        if done == 3:  # mid-task: the adapters are in place and trained a little
+            plain = method.mid_task_policy(policy)
+            seen["wrapped"] = list(policy.state_dict())
+            worker_side = FlowMatchingPolicy(plain.config)
+            worker_side.load_state_dict(plain.state_dict())  # strict, as a worker loads it
+            seen["merged"] = {n: worker_side.get_submodule(n).weight.clone() for n in targets}
+            seen["live"] = {n: policy.get_submodule(n).base_layer.weight
+                            + policy.get_submodule(n).lora_B["default"].weight
+                            @ policy.get_submodule(n).lora_A["default"].weight * 3.0 for n in targets}
+            seen["trainable"] = [n for n, p in policy.named_parameters() if p.requires_grad]
+
+    _train(method, policy, 1, after_step=capture)
+    assert any(".lora_A." in n for n in seen["wrapped"])  # the copy left the training policy be
+    assert seen["trainable"] and all(".lora_" in n for n in seen["trainable"])
+    for n in targets:
+        assert torch.allclose(seen["merged"][n], seen["live"][n].detach(), atol=1e-6), n
+    assert method.mid_task_policy(policy) is policy  # after the task: nothing wrapped
+
+
 def test_lora_target_selects_by_module_name_and_rejects_a_miss():
     policy = _policy()
     assert LoRA(LoRAConfig(target=".*")).target_modules(policy) == [
