@@ -171,7 +171,7 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
         run_job,
     )
     from harness.run_outputs import summary_table
-    from harness.tracking import Tracker, git_commit, package_versions
+    from harness.tracking import Tracker, finished_keys, git_commit, package_versions
 
     cfg = p.cfg
     torch.set_num_threads(cfg.torch_threads)
@@ -197,6 +197,7 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
         make_missing_demos(cfg, suite)
         data = prepare_data(cfg, suite)
         print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
+        earlier = finished_keys(tracker.client, tracker.experiment_id, [k for *_, k in keyed])
         jobs = []
         for seed, variant, key in keyed:
             child = _child_run(tracker, variant, seed, key, parent, provenance)
@@ -211,13 +212,14 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
                 print(f"[retain] seed {foundations[i].seed}: foundation ready, stage-0 "
                       f"foundation success {success:.3f} ({time.time() - start:.0f}s)", flush=True)
             results = [None] * len(jobs)
-            progress = Progress(len(jobs))
+            progress = Progress(len(jobs), len(earlier))
             for i, r in executor.run(run_job, jobs):
                 results[i] = r
-                print(f"[retain] {progress.done_one()} {jobs[i].label} seed {r.seed}: "
+                count, times = progress.done_one(jobs[i].key in earlier)
+                print(f"[retain] {count} {jobs[i].label} seed {r.seed}: "
                       f"foundation success {r.metrics['foundation_success_stage0']:.3f} -> "
                       f"{r.metrics['retention']:.3f}, plasticity {r.metrics['plasticity']:.3f} "
-                      f"({progress.times()})", flush=True)
+                      f"({times})", flush=True)
         finally:
             executor.close()
         print("\n" + summary_table(results))
@@ -239,19 +241,23 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
 
 
 class Progress:
-    """Jobs done of all, and the time left estimated from the rate so far."""
+    """Jobs done of all, and the time left estimated from the rate of the jobs run now (a job
+    finished by an earlier invocation returns at once and says nothing of the rate)."""
 
-    def __init__(self, total: int):
-        self.total, self.done, self.start = total, 0, time.time()
+    def __init__(self, total: int, finished_earlier: int = 0):
+        self.total, self.start = total, time.time()
+        self.done, self.ran, self.to_run = 0, 0, total - finished_earlier
 
-    def done_one(self) -> str:
+    def done_one(self, earlier: bool = False) -> tuple[str, str]:
+        """("k/n", the times so far) for the job just done."""
         self.done += 1
-        return f"{self.done}/{self.total}"
-
-    def times(self) -> str:
+        if earlier:
+            return f"{self.done}/{self.total}", "finished earlier"
+        self.ran += 1
         elapsed = time.time() - self.start
-        left = elapsed / self.done * (self.total - self.done)
-        return f"{_duration(elapsed)} elapsed, about {_duration(left)} left"
+        left = elapsed / self.ran * (self.to_run - self.ran)
+        return (f"{self.done}/{self.total}",
+                f"{_duration(elapsed)} elapsed, about {_duration(left)} left")
 
 
 def _duration(seconds: float) -> str:

@@ -152,7 +152,7 @@ def plan_part(part: StudyPart, extra: list[str]) -> PartPlan:
 
 def finished_keys(pp: PartPlan) -> set[str]:
     """The keys of the part's jobs whose MLflow run is FINISHED (none before the store exists)."""
-    from harness.tracking import KEY_TAG, quiet_mlflow, tracking_uri
+    from harness.tracking import finished_keys as finished, quiet_mlflow, tracking_uri
 
     cfg = pp.plan.cfg
     uri = tracking_uri(cfg.results_dir)
@@ -165,10 +165,7 @@ def finished_keys(pp: PartPlan) -> set[str]:
     experiment = client.get_experiment_by_name(cfg.name)
     if experiment is None:
         return set()
-    runs = client.search_runs([experiment.experiment_id],
-                              filter_string="attributes.status = 'FINISHED'", max_results=5000)
-    done = {run.data.tags.get(KEY_TAG, "") for run in runs}
-    return done & {key for *_, key in pp.jobs}
+    return finished(client, experiment.experiment_id, [key for *_, key in pp.jobs])
 
 
 def stages_done(seed: int, variant: Variant) -> int:

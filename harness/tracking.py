@@ -70,6 +70,13 @@ def quiet_mlflow() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
 
 
+def finished_keys(client, experiment_id: str, keys) -> set[str]:
+    """Those of `keys` whose run is FINISHED: the jobs a rerun skips."""
+    runs = client.search_runs([experiment_id], filter_string="attributes.status = 'FINISHED'",
+                              max_results=5000)
+    return {run.data.tags.get(KEY_TAG, "") for run in runs} & set(keys)
+
+
 class Tracker:
     """A thin layer over `MlflowClient` that knows Retain's run structure."""
 

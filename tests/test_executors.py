@@ -107,7 +107,13 @@ def test_killed_comparison_rerun_leaves_one_finished_run_per_job(tmp_path, seria
     proc.wait()
     before = _runs(tmp_path / "results")
     assert any(r.info.status == "RUNNING" for r in before)  # what the kill left
-    _run(cmd)
+    out = _run(cmd)
+    # jobs the killed invocation finished are reported as such, and left out of the time estimate
+    earlier = {(r.data.tags["label"], r.data.tags["seed"]) for r in before
+               if r.info.status == "FINISHED" and "mlflow.parentRunId" in r.data.tags}
+    for label, seed in RUNS:
+        line = next(x for x in out.splitlines() if f" {label} seed {seed}: foundation" in x)
+        assert line.endswith("(finished earlier)") == ((label, str(seed)) in earlier), line
     runs = _runs(tmp_path / "results")
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
@@ -116,6 +122,18 @@ def test_killed_comparison_rerun_leaves_one_finished_run_per_job(tmp_path, seria
     assert sorted((r.data.tags["label"], int(r.data.tags["seed"])) for r in children) == sorted(RUNS)
     assert {r.data.tags["mlflow.parentRunId"] for r in children} == {parents[0].info.run_id}
     assert _outputs(tmp_path / "results") == serial[1]
+
+
+def test_time_left_is_estimated_from_the_jobs_run_now():
+    from harness.cli import Progress
+
+    progress = Progress(total=4, finished_earlier=2)
+    assert progress.done_one(earlier=True) == ("1/4", "finished earlier")
+    progress.start -= 120  # the first job run now took two minutes; one more is to run
+    count, times = progress.done_one()
+    assert count == "2/4" and times.startswith("2m00s elapsed") and times.endswith("about 2m00s left")
+    assert progress.done_one(earlier=True) == ("3/4", "finished earlier")
+    assert progress.done_one()[1].endswith("about 0s left")
 
 
 def test_a_setting_given_outside_grid_gets_its_own_run_directory():
