@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from harness.atomic import atomic_path, write_text
+from harness import figures
+from harness.atomic import write_text
 from harness.config import BenchConfig
 
 
@@ -32,34 +33,6 @@ def rows_csv(rows: list[dict]) -> str:
         writer.writeheader()
         writer.writerows(rows)
     return buf.getvalue()
-
-
-def plot_success_matrix(path: Path, R: np.ndarray, tasks: list[str], stage_tasks: list[str],
-                        n_foundation: int, title: str) -> None:
-    """Stages by tasks, foundation and stream tasks separated by a line."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(1.0 + 0.55 * len(tasks), 1.4 + 0.45 * len(R)), dpi=120)
-    im = ax.imshow(R, vmin=0, vmax=1, cmap="viridis", aspect="auto")
-    for (i, j), v in np.ndenumerate(R):
-        ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7,
-                color="white" if v < 0.6 else "black")
-    ax.axvline(n_foundation - 0.5, color="red", linewidth=2)
-    ax.set_xticks(range(len(tasks)), [t.removesuffix("-v3") for t in tasks], rotation=60, ha="right",
-                  fontsize=8)
-    ax.set_yticks(range(len(R)), [f"{i}: {t.removesuffix('-v3')}" for i, t in enumerate(stage_tasks)],
-                  fontsize=8)
-    ax.set_xlabel("evaluated task (left of red line: foundation; right: stream)")
-    ax.set_ylabel("stage: trained on")
-    ax.set_title(title, fontsize=9)
-    fig.colorbar(im, ax=ax, label="success rate")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
 
 
 def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, Path]:
@@ -92,8 +65,8 @@ def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, P
                                               "metrics": result.metrics, "stages": stages},
                                              indent=2, sort_keys=True, default=float) + "\n")
     write_text(paths["config"], yaml.safe_dump({**provenance, "config": cfg.as_dict()}, sort_keys=True))
-    plot_success_matrix(paths["heatmap"], R, result.tasks, stage_tasks, len(cfg.foundation_tasks),
-                        f"{cfg.name}: {result.method}, seed {result.seed}")
+    figures.success_matrix(paths["heatmap"], R, result.tasks, stage_tasks, len(cfg.foundation_tasks),
+                           f"{cfg.name}: {result.method}, seed {result.seed}")
     return paths
 
 

@@ -6,21 +6,22 @@ objects (no pyplot state), so the same summaries always give the same bytes.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.atomic import atomic_path
+from harness import figures
+from harness.figures import save
 from harness.report.aggregate import RowSummary
 
-DPI = 120
 
-
-def save(fig: Figure, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=DPI, metadata={"Software": None})
+def success_heatmap(path: Path, s: RowSummary, benchmark: str) -> None:
+    """A row's success matrix, mean over its seeds; each stage's trained task outlined."""
+    figures.success_matrix(path, s.success_mean, s.foundation_tasks + s.stream_tasks,
+                           ["foundation", *s.stream_tasks], len(s.foundation_tasks),
+                           f"{benchmark}: {s.label}, success rate (mean of {len(s.row.runs)} seeds)",
+                           outline_trained=True)
 
 
 def colors(summaries: list[RowSummary]) -> dict[str, tuple]:
@@ -31,49 +32,13 @@ def colors(summaries: list[RowSummary]) -> dict[str, tuple]:
     return {s.label: cmap(i % cmap.N) for i, s in enumerate(summaries)}
 
 
-def short(task: str) -> str:
-    """Task names without the version suffix ("drawer-close-v3" -> "drawer-close")."""
-    return re.sub(r"-v\d+$", "", task)
-
-
-def success_heatmap(path: Path, s: RowSummary, benchmark: str) -> None:
-    """Stages (rows) by tasks (columns), foundation tasks left of the red line; the cell of the
-    task trained at each stage is outlined (its value is that task's plasticity term)."""
-    R, tasks = s.success_mean, s.foundation_tasks + s.stream_tasks
-    n_f = len(s.foundation_tasks)
-    fig = Figure(figsize=(2.2 + 0.62 * len(tasks), 1.6 + 0.5 * len(R)))
-    ax = fig.add_subplot()
-    from matplotlib import colormaps
-
-    cmap = colormaps["viridis"].with_extremes(bad="lightgrey")  # grey: never evaluated
-    im = ax.imshow(np.ma.masked_invalid(R), vmin=0, vmax=1, cmap=cmap, aspect="auto")
-    for (i, j), v in np.ndenumerate(R):
-        ax.text(j, i, "n/a" if np.isnan(v) else f"{v:.2f}", ha="center", va="center", fontsize=8,
-                color="white" if np.isnan(v) or v < 0.6 else "black")
-    for i in range(1, len(R)):
-        ax.add_patch(_outline(i, n_f + i - 1))
-    ax.axvline(n_f - 0.5, color="red", linewidth=2)
-    ax.set_xticks(range(len(tasks)), [short(t) for t in tasks], rotation=50, ha="right", fontsize=8)
-    stage_names = ["foundation"] + [short(t) for t in s.stream_tasks]
-    ax.set_yticks(range(len(R)), [f"{i}: {t}" for i, t in enumerate(stage_names)], fontsize=8)
-    ax.set_xlabel("evaluated task (left of red line: foundation; right: stream)")
-    ax.set_ylabel("stage: trained on")
-    ax.set_title(f"{benchmark}: {s.label}, success rate (mean of {len(s.row.runs)} seeds)",
-                 fontsize=10)
-    fig.colorbar(im, ax=ax, label="success rate")
-    fig.tight_layout()
-    save(fig, path)
-
-
-def _outline(row: int, col: int):
-    from matplotlib.patches import Rectangle
-
-    return Rectangle((col - 0.5, row - 0.5), 1, 1, fill=False, edgecolor="white", linewidth=1.5)
-
-
 def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
     """Foundation success after each stage: one line per row, its 95% CI band over seeds."""
-    fig = Figure(figsize=(8, 4.5))
+    first = summaries[0]
+    ticks = [f"{i}\n{figures.task_label(t, width=16)}"
+             for i, t in enumerate(["foundation", *first.stream_tasks])]
+    tick_w, tick_h = figures.text_size(ticks)
+    fig = Figure(figsize=(max(8.0, 3.5 + (tick_w + 0.2) * len(ticks)), 4.0 + tick_h))
     ax = fig.add_subplot()
     color = colors(summaries)
     for s in summaries:
@@ -83,9 +48,7 @@ def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -
         if all(c.has_interval for c in s.foundation_by_stage):
             ax.fill_between(x, [c.low for c in s.foundation_by_stage],
                             [c.high for c in s.foundation_by_stage], color=color[s.label], alpha=0.2)
-    first = summaries[0]
-    names = ["foundation"] + [short(t) for t in first.stream_tasks]
-    ax.set_xticks(range(len(names)), [f"{i}\n{t}" for i, t in enumerate(names)], fontsize=8)
+    ax.set_xticks(range(len(ticks)), ticks, fontsize=figures.FONT_PT)
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel("stage (task trained at that stage)")
     ax.set_ylabel("foundation success (mean over foundation tasks)")
