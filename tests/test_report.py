@@ -248,18 +248,43 @@ def test_update_histogram_uses_the_thresholds_every_run_logged():
     np.testing.assert_allclose(histogram.fractions, [1 - above, above])
 
 
-def test_points_on_top_of_each_other_share_one_label(monkeypatch, tmp_path):
+def test_point_names_never_overlap_each_other_or_leave_the_axes(monkeypatch, tmp_path):
+    # mw-broad-6's figures: SFT at 1e-4 and 3e-5 lie 0.02 apart in plasticity and 0.003 in
+    # retention, and their names were drawn over each other; here two rows also share a point.
+    import dataclasses
+    from itertools import combinations
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     from harness.report import plots
     from harness.report.aggregate import summarize
-    from harness.report.groups import Row
+    from harness.report.groups import build_rows
 
     figures = []
     monkeypatch.setattr(plots, "save", lambda fig, path: figures.append(fig))
-    rows = [Row(m, m, "", [fake_run(m, 0, retention=r)], []) for m, r in
-            [("sft", 0.125), ("consft", 0.13), ("er", 0.94)]]
-    plots.plasticity_retention(tmp_path / "p.png", [summarize(r) for r in rows], "mw-test")
-    texts = sorted(t.get_text() for t in figures[0].axes[0].texts)
-    assert texts == ["er", "sft / consft"]
+    points = [("sft", "0.0003", 0.136, 0.973), ("sft", "0.0001", 0.294, 0.973),
+              ("sft", "3e-05", 0.297, 0.993), ("consft", "0.0003", 0.206, 0.987),
+              ("er", "0.0003", 0.922, 0.963), ("agem", "0.0003", 0.922, 0.963)]
+    runs = []
+    for method, lr, retention, plasticity in points:
+        run = fake_run(method, 0, lr=lr, retention=retention, plasticity=plasticity)
+        runs.append(dataclasses.replace(run, metrics={
+            **run.metrics, "spatial_retention": 0.75 * retention,
+            "spatial_foundation_success_stage0": 0.7}))
+    summaries = [summarize(r) for r in build_rows(runs)[0]]
+    plots.plasticity_retention(tmp_path / "p.png", summaries, "mw-test")
+    plots.spatial_retention(tmp_path / "s.png", summaries, "mw-test")
+    assert len(figures) == 2
+    for fig in figures:
+        ax = fig.axes[0]
+        renderer = FigureCanvasAgg(fig).get_renderer()
+        names = [t for t in ax.texts if t.get_text()]
+        assert sorted(t.get_text() for t in names) == sorted(s.label for s in summaries)
+        boxes = [t.get_window_extent(renderer) for t in names]
+        assert not [(a, b) for a, b in combinations(boxes, 2) if a.overlaps(b)]
+        frame = ax.get_window_extent(renderer)
+        assert all(frame.x0 <= b.x0 and b.x1 <= frame.x1 and frame.y0 <= b.y0 <= b.y1 <= frame.y1
+                   for b in boxes)
 
 
 def test_one_sweep_point_at_two_base_settings_gives_two_rows():

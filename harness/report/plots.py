@@ -66,21 +66,14 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
     fig = Figure(figsize=(10, 6))
     ax = fig.add_subplot()
     color = colors(summaries)
-    labels_at: list[tuple[float, float, list[str]]] = []  # one annotation per cluster of points
+    labelled: list[tuple[float, float, str]] = []
     for s in summaries:
         x, y = s.cells["plasticity"], s.cells["retention"]
         if not (x.n and y.n):
             continue
         ax.errorbar(x.mean, y.mean, xerr=_err(x), yerr=_err(y), fmt="o", color=color[s.label],
                     capsize=3, label=s.label)
-        near = [c for c in labels_at if abs(c[0] - x.mean) < 0.02 and abs(c[1] - y.mean) < 0.02]
-        if near:
-            near[0][2].append(s.label)  # on top of another point: one label names both
-        else:
-            labels_at.append((x.mean, y.mean, [s.label]))
-    for x, y, names in labels_at:
-        ax.annotate(" / ".join(names), (x, y), xytext=(5, 5), textcoords="offset points",
-                    fontsize=8)
+        labelled.append((x.mean, y.mean, s.label))
     frontier = sft_frontier(summaries)
     if frontier:
         ax.plot([p[0] for p in frontier], [p[1] for p in frontier], "--", color="black",
@@ -99,7 +92,48 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
+    label_points(ax, labelled)
     save(fig, path)
+
+
+def label_points(ax, points: list[tuple[float, float, str]]) -> None:
+    """Name each point beside it: the first spot around it, moving outwards, where the name
+    stays inside the axes and clear of the names already placed (a thin line leads back to a
+    point whose name had to move away). Call it after `tight_layout`: overlap is measured in
+    the figure's final pixels."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(ax.figure).get_renderer()
+    frame = ax.get_window_extent(renderer)
+    placed = []
+    for x, y, name in points:
+        for dx, dy in _label_offsets():
+            far = abs(dy) > 5
+            text = ax.annotate(name, (x, y), xytext=(dx, dy), textcoords="offset points",
+                               fontsize=8, ha="left" if dx > 0 else "right",
+                               va="bottom" if dy > 0 else "top",
+                               arrowprops={"arrowstyle": "-", "color": "grey", "linewidth": 0.5,
+                                           "shrinkA": 0, "shrinkB": 2} if far else None)
+            box = text.get_window_extent(renderer)
+            inside = frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 \
+                and box.y1 <= frame.y1
+            if inside and not any(box.overlaps(b) for b in placed):
+                break
+            text.remove()
+        else:  # nowhere free: the first spot, overlapping
+            text = ax.annotate(name, (x, y), xytext=(5, 5), textcoords="offset points",
+                               fontsize=8)
+            box = text.get_window_extent(renderer)
+        placed.append(box)
+
+
+def _label_offsets():
+    """Spots for a point's name, in offset points: the four corners beside it, then further up
+    and down, one text line at a time."""
+    for step in range(12):
+        for dx in (5, -5):
+            for sign in (1, -1):
+                yield dx, sign * (5 + 11 * step)
 
 
 def _zoom(values: list[float]) -> tuple[float, float]:
@@ -220,6 +254,7 @@ def spatial_retention(path: Path, summaries: list[RowSummary], benchmark: str) -
     ax = fig.add_subplot()
     color = colors(summaries)
     xs, ys = [], []
+    labelled: list[tuple[float, float, str]] = []
     for s in summaries:
         x, y = s.cells["retention"], s.cells["spatial_retention"]
         start = s.foundation_by_stage[0], s.cells["spatial_foundation_success_stage0"]
@@ -227,8 +262,7 @@ def spatial_retention(path: Path, summaries: list[RowSummary], benchmark: str) -
             continue
         ax.errorbar(x.mean, y.mean, xerr=_err(x), yerr=_err(y), fmt="o", color=color[s.label],
                     capsize=3, label=s.label)
-        ax.annotate(s.label, (x.mean, y.mean), xytext=(5, 5), textcoords="offset points",
-                    fontsize=8)
+        labelled.append((x.mean, y.mean, s.label))
         if start[0].n and start[1].n:
             ax.annotate("", (x.mean, y.mean), xytext=(start[0].mean, start[1].mean),
                         arrowprops={"arrowstyle": "->", "color": color[s.label], "alpha": 0.4})
@@ -250,4 +284,5 @@ def spatial_retention(path: Path, summaries: list[RowSummary], benchmark: str) -
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
+    label_points(ax, labelled)
     save(fig, path)
