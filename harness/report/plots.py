@@ -98,39 +98,58 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
 
 def label_points(ax, points: list[tuple[float, float, str]]) -> None:
     """Name each point beside it: the first spot around it, moving outwards, where the name
-    stays inside the axes and clear of the names already placed (a thin line leads back to a
-    point whose name had to move away). Call it after `tight_layout`: overlap is measured in
-    the figure's final pixels."""
+    stays inside the axes, clear of other points and of the names already placed, and less than
+    half as far from its own point as from any other (so it never reads as a neighbour's name);
+    failing that, the free spot relatively nearest its own point. A thin line leads back to a
+    point whose name had to move away. Call it after `tight_layout`: it measures final pixels."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     renderer = FigureCanvasAgg(ax.figure).get_renderer()
     frame = ax.get_window_extent(renderer)
+    pixels = ax.transData.transform([(x, y) for x, y, _ in points]) if points else []
     placed = []
-    for x, y, name in points:
+    for i, (x, y, name) in enumerate(points):
+        others = [p for p in pixels if np.hypot(*(p - pixels[i])) > 8]  # markers overlapping
+        # its own (8 px, a marker's width) are one place: either name may sit beside it
+        best = None  # (own distance / nearest other's, offset) of the best free spot
         for dx, dy in _label_offsets():
-            far = abs(dy) > 5
-            text = ax.annotate(name, (x, y), xytext=(dx, dy), textcoords="offset points",
-                               fontsize=8, ha="left" if dx > 0 else "right",
-                               va="bottom" if dy > 0 else "top",
-                               arrowprops={"arrowstyle": "-", "color": "grey", "linewidth": 0.5,
-                                           "shrinkA": 0, "shrinkB": 2} if far else None)
+            text = _annotate(ax, name, (x, y), (dx, dy))
             box = text.get_window_extent(renderer)
+            text.remove()
             inside = frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 \
                 and box.y1 <= frame.y1
-            if inside and not any(box.overlaps(b) for b in placed):
+            nearest = min([_distance(box, p) for p in others] or [np.inf])
+            if not inside or nearest == 0 or any(box.overlaps(b) for b in placed):
+                continue  # outside, over another point, or over a name
+            ratio = _distance(box, pixels[i]) / nearest
+            if best is None or ratio < best[0]:
+                best = ratio, (dx, dy)
+            if ratio < 0.5:
                 break
-            text.remove()
-        else:  # nowhere free: the first spot, overlapping
-            text = ax.annotate(name, (x, y), xytext=(5, 5), textcoords="offset points",
-                               fontsize=8)
-            box = text.get_window_extent(renderer)
-        placed.append(box)
+        text = _annotate(ax, name, (x, y), best[1] if best else (5, 5))
+        placed.append(text.get_window_extent(renderer))
+
+
+def _annotate(ax, name: str, point: tuple[float, float], offset: tuple[float, float]):
+    """`name` at `offset` points from `point`, its nearest corner there; a leader line when far."""
+    dx, dy = offset
+    return ax.annotate(name, point, xytext=offset, textcoords="offset points", fontsize=8,
+                       ha="left" if dx > 0 else "right", va="bottom" if dy > 0 else "top",
+                       arrowprops={"arrowstyle": "-", "color": "grey", "linewidth": 0.5,
+                                   "shrinkA": 0, "shrinkB": 2} if abs(dy) > 5 else None)
+
+
+def _distance(box, point) -> float:
+    """Pixels from a point to the nearest edge of a box (0 inside it)."""
+    dx = max(box.x0 - point[0], 0.0, point[0] - box.x1)
+    dy = max(box.y0 - point[1], 0.0, point[1] - box.y1)
+    return float(np.hypot(dx, dy))
 
 
 def _label_offsets():
     """Spots for a point's name, in offset points: the four corners beside it, then further up
     and down, one text line at a time."""
-    for step in range(12):
+    for step in range(4):
         for dx in (5, -5):
             for sign in (1, -1):
                 yield dx, sign * (5 + 11 * step)
