@@ -116,8 +116,7 @@ def label_points(ax, points: list[tuple[float, float, str]]) -> None:
             text = _annotate(ax, name, (x, y), (dx, dy))
             box = text.get_window_extent(renderer)
             text.remove()
-            inside = frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 \
-                and box.y1 <= frame.y1
+            inside = frame.contains(box.x0, box.y0) and frame.contains(box.x1, box.y1)
             nearest = min([_distance(box, p) for p in others] or [np.inf])
             if not inside or nearest == 0 or any(box.overlaps(b) for b in placed):
                 continue  # outside, over another point, or over a name
@@ -126,7 +125,7 @@ def label_points(ax, points: list[tuple[float, float, str]]) -> None:
                 best = ratio, (dx, dy)
             if ratio < 0.5:
                 break
-        text = _annotate(ax, name, (x, y), best[1] if best else (5, 5))
+        text = _annotate(ax, name, (x, y), best[1] if best else (_BESIDE, _BESIDE))
         placed.append(text.get_window_extent(renderer))
 
 
@@ -136,7 +135,7 @@ def _annotate(ax, name: str, point: tuple[float, float], offset: tuple[float, fl
     return ax.annotate(name, point, xytext=offset, textcoords="offset points", fontsize=8,
                        ha="left" if dx > 0 else "right", va="bottom" if dy > 0 else "top",
                        arrowprops={"arrowstyle": "-", "color": "grey", "linewidth": 0.5,
-                                   "shrinkA": 0, "shrinkB": 2} if abs(dy) > 5 else None)
+                                   "shrinkA": 0, "shrinkB": 2} if abs(dy) > _BESIDE else None)
 
 
 def _distance(box, point) -> float:
@@ -146,13 +145,16 @@ def _distance(box, point) -> float:
     return float(np.hypot(dx, dy))
 
 
+_BESIDE = 5  # offset points from a point to its name's nearest corner
+
+
 def _label_offsets():
     """Spots for a point's name, in offset points: the four corners beside it, then further up
     and down, one text line at a time."""
     for step in range(4):
-        for dx in (5, -5):
+        for dx in (_BESIDE, -_BESIDE):
             for sign in (1, -1):
-                yield dx, sign * (5 + 11 * step)
+                yield dx, sign * (_BESIDE + 11 * step)
 
 
 def _zoom(values: list[float]) -> tuple[float, float]:
