@@ -95,6 +95,22 @@ def test_demo_episodes_are_fresh_seeded_scenes_not_evaluation_states(object_env)
     assert not np.isclose(init_states(OBJECT_TASK), first).all(axis=1).any()
 
 
+def test_demo_starts_spread_the_arm_like_liberos_init_states(object_env):
+    """LIBERO's 50 init states start the arm's 7 joints about 0.02 rad from its home pose: demos
+    that all started at the home pose left the policy lost from every evaluation start."""
+    def arm_spread(states: np.ndarray) -> float:  # a flattened state is [time, qpos, qvel]
+        joints = states[:, 1:8]
+        return float((joints - joints.mean(0)).std())
+
+    starts = []
+    for key in SUITE.episode_keys(OBJECT_TASK, "demo", 16):
+        object_env.start(key)
+        starts.append(object_env.sim_state())
+    demo, libero = arm_spread(np.stack(starts)), arm_spread(np.asarray(init_states(OBJECT_TASK)))
+    assert 0.015 < libero < 0.025
+    assert 0.6 * libero < demo < 1.5 * libero, (demo, libero)
+
+
 def test_state_layout_is_fixed_per_task(object_env):
     obs = object_env.reset(7)
     state, raw = obs["state"], object_env.raw_obs
