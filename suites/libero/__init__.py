@@ -28,8 +28,9 @@ class LiberoSuite(Suite):
 
     def version(self) -> str:
         """2: resets place fixtures by the episode's key, and the experts take objects out from
-        under an overhang. 3: fresh scenes start the arm with LIBERO's joint noise (env.py's
-        ROBOT_INIT_NOISE). Demo files made before a change are regenerated, not reused."""
+        under an overhang. 3: fresh scenes are drawn as LIBERO drew its init states: the arm with
+        its joint noise (env.py's ROBOT_INIT_NOISE) and objects on fixtures placed in a freshly
+        loaded model. Demo files made before a change are regenerated, not reused."""
         return "3"
 
     def task_names(self) -> list[str]:

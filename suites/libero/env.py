@@ -4,10 +4,11 @@ Episodes (`reset(key)`):
   key < FRESH_PLACEMENT  LIBERO's fixed init state `key mod 50` from the task's init file, set
                          after a reset as LIBERO's evaluation does (evaluation episode i uses i);
                          the reset's fixture placement is seeded by the key, as below.
-  key >= FRESH_PLACEMENT a fresh scene from LIBERO's own placement sampler, its arm joints
-                         moved by robosuite's default initialization noise, both seeded by the
-                         key (demo and held-out episodes: the distribution LIBERO drew its init
-                         states from, but never one of the 50 evaluation states).
+  key >= FRESH_PLACEMENT a fresh scene from LIBERO's own placement sampler in a reloaded
+                         model, its arm joints moved by robosuite's default initialization
+                         noise, both seeded by the key (demo and held-out episodes: the
+                         distribution LIBERO drew its init states from, but never one of the
+                         50 evaluation states).
   key >= SPATIAL_KEYS    the spatial probe: fixed init state `key & 63` with every object that
                          rests on the table or floor moved by a seeded 3-6 cm offset in a
                          random direction, to beyond its demo range (`spatial_state`).
@@ -78,7 +79,7 @@ def make_raw_env(task: LiberoTask, cameras: bool, image_size: int):
                       has_offscreen_renderer=cameras, use_camera_obs=cameras,
                       camera_names=list(CAMERAS.values()), camera_heights=image_size,
                       camera_widths=image_size, horizon=10**9, ignore_done=True,
-                      hard_reset=False, initialization_noise=ROBOT_INIT_NOISE)  # reset in place: reloading the model costs seconds
+                      hard_reset=False, initialization_noise=ROBOT_INIT_NOISE)  # start() sets it
 
 
 def _quat2axisangle(quat: np.ndarray) -> np.ndarray:
@@ -119,6 +120,13 @@ class LiberoTaskEnv(TaskEnv):
         # previous reset's draw left it (up to 1 cm and 2 degrees apart, enough to move a bowl
         # that starts in its drawer). A spatial episode's fixtures are its init state's.
         seed = key & ((1 << INIT_INDEX_BITS) - 1) if is_spatial(key) else key
+        fresh = key >= FRESH_PLACEMENT and not is_spatial(key)
+        # LIBERO places an object that starts on a fixture (a bowl on the microwave) from the
+        # fixture's site as a freshly loaded model has it; after a reset in place the site has
+        # moved and the object lands 0.3 m off, in mid-air. So a fresh scene reloads the model
+        # (about 1.5 s), as LIBERO's own resets did when it drew its init states; an init
+        # state sets every object itself and keeps the cheap reset.
+        self.env.env.hard_reset = fresh
         self.env.env.rng = np.random.default_rng(seed)  # robosuite draws the arm's noise from it
         saved = np.random.get_state()
         np.random.seed(seed % (1 << 32))
