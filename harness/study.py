@@ -152,7 +152,8 @@ def plan_part(part: StudyPart, extra: list[str]) -> PartPlan:
 
 def finished_keys(pp: PartPlan) -> set[str]:
     """The keys of the part's jobs whose MLflow run is FINISHED (none before the store exists)."""
-    from harness.tracking import finished_keys as finished, quiet_mlflow, tracking_uri
+    from harness.tracking import finished_keys as finished
+    from harness.tracking import quiet_mlflow, tracking_uri
 
     cfg = pp.plan.cfg
     uri = tracking_uri(cfg.results_dir)
