@@ -79,7 +79,8 @@ def make_raw_env(task: LiberoTask, cameras: bool, image_size: int):
                       has_offscreen_renderer=cameras, use_camera_obs=cameras,
                       camera_names=list(CAMERAS.values()), camera_heights=image_size,
                       camera_widths=image_size, horizon=10**9, ignore_done=True,
-                      hard_reset=False, initialization_noise=ROBOT_INIT_NOISE)  # start() sets it
+                      initialization_noise=ROBOT_INIT_NOISE,
+                      hard_reset=False)  # start() reloads the model for a fresh scene only
 
 
 def _quat2axisangle(quat: np.ndarray) -> np.ndarray:
@@ -123,7 +124,7 @@ class LiberoTaskEnv(TaskEnv):
         fresh = key >= FRESH_PLACEMENT and not is_spatial(key)
         # LIBERO places an object that starts on a fixture (a bowl on the microwave) from the
         # fixture's site as a freshly loaded model has it; after a reset in place the site has
-        # moved and the object lands 0.3 m off, in mid-air. So a fresh scene reloads the model
+        # moved and the object lands 0.3-0.9 m off, in mid-air. So a fresh scene reloads the model
         # (about 1.5 s), as LIBERO's own resets did when it drew its init states; an init
         # state sets every object itself and keeps the cheap reset.
         self.env.env.hard_reset = fresh
