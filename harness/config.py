@@ -34,6 +34,10 @@ class BenchConfig:
     heldout_demos_per_task: int = 5
     eval_episodes: int = 20
     spatial_episodes: int = 0  # per task and stage, from widened initial states; 0: probe off
+    # foundation tasks are rolled out at stage 0, every N-th stage and the last (stream tasks and
+    # every held-out loss at every stage): a long stream's failed foundation episodes, each run to
+    # the episode limit, are most of its evaluation time, and retention needs stages 0 and k only
+    foundation_eval_every: int = 1
     max_episode_steps: int = 200
     foundation_steps: int = 4000
     steps_per_task: int = 1500
@@ -74,6 +78,10 @@ class BenchConfig:
     def workers(self) -> int:
         return self.eval_workers if self.eval_workers > 0 else (os.cpu_count() or 1)
 
+    def evaluates_foundation(self, stage: int) -> bool:
+        """Whether the foundation tasks are rolled out after `stage` (see foundation_eval_every)."""
+        return stage % self.foundation_eval_every == 0 or stage == len(self.stream_tasks)
+
     def seed_list(self) -> list[int]:
         return list(range(self.seed, self.seed + self.seeds))
 
@@ -88,11 +96,11 @@ BENCH_KEYS = frozenset(f.name for f in fields(BenchConfig)) - {"method_params", 
 # GRID cannot vary them: the points would record a value that was never used
 SHARED_BY_SWEEP_POINTS = frozenset({
     "name", "suite", "foundation_tasks", "stream_tasks", "demos_per_task", "spatial_episodes",
-    "heldout_demos_per_task", "eval_episodes", "max_episode_steps", "foundation_steps",
-    "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras", "image_size",
-    "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress", "torch_threads",
-    "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs", "policy", "device",
-    "compile"})
+    "heldout_demos_per_task", "eval_episodes", "foundation_eval_every", "max_episode_steps",
+    "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
+    "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
+    "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
+    "policy", "device", "compile"})
 
 EXECUTORS = ("serial", "local", "ray")
 
@@ -104,7 +112,7 @@ NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eva
 # settings added after results were recorded, at the value that changes nothing: there a run
 # key leaves them out (earlier checkpoints still resume) and a report reads a run that never
 # logged them as having it (its rows keep their labels)
-QUIET_DEFAULTS: dict[str, Any] = {"spatial_episodes": 0, "eval_shards": 2}
+QUIET_DEFAULTS: dict[str, Any] = {"spatial_episodes": 0, "eval_shards": 2, "foundation_eval_every": 1}
 
 
 def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:
@@ -284,6 +292,9 @@ def resolve(args: list[str]) -> BenchConfig:
     if cfg.spatial_episodes < 0:
         raise RetainError(f"bad value {cfg.spatial_episodes} for spatial_episodes: expected 0 "
                           "(no spatial probe) or more")
+    if cfg.foundation_eval_every < 1:
+        raise RetainError(f"bad value {cfg.foundation_eval_every} for foundation_eval_every: "
+                          "expected 1 (every stage) or more (stage 0, every N-th and the last)")
     if cfg.jobs < 0:
         raise RetainError(f"bad value {cfg.jobs} for jobs: expected 0 (as many as the cores "
                           "allow) or more")

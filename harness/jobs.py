@@ -136,7 +136,9 @@ def run_job(job: Job, evaluator=None, data=None):
     logger = BatchedMetrics(tracker, child)
     status = "FAILED"
     try:
-        logged = tracker.logged_steps(child, "foundation_success")  # by an earlier attempt
+        # the stages an earlier attempt logged; held-out losses are logged at every stage, while
+        # foundation success is NaN (not logged) where the foundation was not rolled out
+        logged = tracker.logged_steps(child, f"heldout_loss/{cfg.foundation_tasks[0]}")
 
         def log_stage(record) -> None:
             if record.stage in logged:
@@ -148,8 +150,10 @@ def run_job(job: Job, evaluator=None, data=None):
                                                 for n, v in zip(record.curve_steps, record.curve)])
 
         def on_stage(record) -> None:
+            success = foundation_success(cfg, record)
             print(f"[retain] {job.label} seed {seed}: stage {record.stage} ({record.task}) done, "
-                  f"foundation success {foundation_success(cfg, record):.3f}", flush=True)
+                  + (f"foundation success {success:.3f}" if success == success
+                     else "foundation not rolled out at this stage"), flush=True)
             logger.flush()
             log_stage(record)
 
@@ -175,6 +179,7 @@ def run_job(job: Job, evaluator=None, data=None):
 
 
 def foundation_success(cfg: BenchConfig, record) -> float:
+    """Mean success over the foundation tasks; NaN at a stage that did not roll them out."""
     return sum(record.success[t] for t in cfg.foundation_tasks) / len(cfg.foundation_tasks)
 
 

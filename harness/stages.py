@@ -49,10 +49,13 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
     """Roll out every task (foundation and stream), also from the spatial probe's states when
     it is on, and measure every held-out loss.
 
+    The foundation tasks are rolled out only at the stages `cfg.evaluates_foundation` names; at
+    the others their success is NaN (not evaluated) and their held-out loss is still measured.
     A task-aware method (PackNet) is evaluated group by group inside its `evaluation_view`: the
     foundation tasks together, then each stream task; any other method in one call, as before.
     """
     tasks = cfg.foundation_tasks + cfg.stream_tasks
+    rolled = tasks if cfg.evaluates_foundation(stage) else cfg.stream_tasks
     noise_seed = derive_seed(seed, "eval")
     aware = method is not None and method.task_aware_eval
     groups = [cfg.foundation_tasks] + [[t] for t in cfg.stream_tasks] if aware else [tasks]
@@ -60,21 +63,26 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
     for group in (g for g in groups if g):
         view = (method.evaluation_view(policy, group[0], cfg.stream_tasks) if aware
                 else contextlib.nullcontext())
+        rollouts = [t for t in group if t in rolled]
         with view:
-            results.update(evaluator.evaluate(policy, group, data.instructions, noise_seed))
-            if cfg.spatial_episodes > 0:
-                spatial.update(evaluator.evaluate(policy, group, data.instructions, noise_seed,
+            if rollouts:
+                results.update(evaluator.evaluate(policy, rollouts, data.instructions, noise_seed))
+            if rollouts and cfg.spatial_episodes > 0:
+                spatial.update(evaluator.evaluate(policy, rollouts, data.instructions, noise_seed,
                                                   split="spatial"))
             heldout.update({t: heldout_loss(policy, data.heldout[t], derive_seed("heldout", t))
                             for t in group})
+    nan = float("nan")
     return StageRecord(
         stage, task,
-        success={t: results[t].success_rate for t in tasks},
-        episodes={t: list(results[t].successes) for t in tasks},
+        success={t: results[t].success_rate if t in results else nan for t in tasks},
+        episodes={t: list(results[t].successes) if t in results else [] for t in tasks},
         heldout_loss={t: heldout[t] for t in tasks},
         env_steps=sum(r.steps for r in (*results.values(), *spatial.values())),
-        spatial_success={t: spatial[t].success_rate for t in tasks if t in spatial},
-        spatial_episodes={t: list(spatial[t].successes) for t in tasks if t in spatial},
+        spatial_success={t: spatial[t].success_rate if t in spatial else nan for t in tasks
+                         } if spatial else {},
+        spatial_episodes={t: list(spatial[t].successes) if t in spatial else [] for t in tasks
+                          } if spatial else {},
     )
 
 

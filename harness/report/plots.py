@@ -41,13 +41,13 @@ def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -
     fig = Figure(figsize=(max(8.0, 3.5 + (tick_w + 0.2) * len(ticks)), 4.0 + tick_h))
     ax = fig.add_subplot()
     color = colors(summaries)
-    for s in summaries:
-        x = np.arange(len(s.foundation_by_stage))
-        mean = np.array([c.mean for c in s.foundation_by_stage])
-        ax.plot(x, mean, marker="o", color=color[s.label], label=s.label)
-        if all(c.has_interval for c in s.foundation_by_stage):
-            ax.fill_between(x, [c.low for c in s.foundation_by_stage],
-                            [c.high for c in s.foundation_by_stage], color=color[s.label], alpha=0.2)
+    for s in summaries:  # stages that did not roll the foundation out (NaN) are left out
+        evaluated = [(i, c) for i, c in enumerate(s.foundation_by_stage) if c.n]
+        x = [i for i, _ in evaluated]
+        ax.plot(x, [c.mean for _, c in evaluated], marker="o", color=color[s.label], label=s.label)
+        if all(c.has_interval for _, c in evaluated):
+            ax.fill_between(x, [c.low for _, c in evaluated], [c.high for _, c in evaluated],
+                            color=color[s.label], alpha=0.2)
     ax.set_xticks(range(len(ticks)), ticks, fontsize=figures.FONT_PT)
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel("stage (task trained at that stage)")
