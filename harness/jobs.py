@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import Any
@@ -152,8 +153,8 @@ def run_job(job: Job, evaluator=None, data=None):
         def on_stage(record) -> None:
             success = foundation_success(cfg, record)
             print(f"[retain] {job.label} seed {seed}: stage {record.stage} ({record.task}) done, "
-                  + (f"foundation success {success:.3f}" if success == success
-                     else "foundation not rolled out at this stage"), flush=True)
+                  + ("foundation not rolled out at this stage" if math.isnan(success)
+                     else f"foundation success {success:.3f}"), flush=True)
             logger.flush()
             log_stage(record)
 

@@ -55,7 +55,7 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
     foundation tasks together, then each stream task; any other method in one call, as before.
     """
     tasks = cfg.foundation_tasks + cfg.stream_tasks
-    rolled = tasks if cfg.evaluates_foundation(stage) else cfg.stream_tasks
+    rolled = set(tasks if cfg.evaluates_foundation(stage) else cfg.stream_tasks)
     noise_seed = derive_seed(seed, "eval")
     aware = method is not None and method.task_aware_eval
     groups = [cfg.foundation_tasks] + [[t] for t in cfg.stream_tasks] if aware else [tasks]
@@ -67,9 +67,9 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
         with view:
             if rollouts:
                 results.update(evaluator.evaluate(policy, rollouts, data.instructions, noise_seed))
-            if rollouts and cfg.spatial_episodes > 0:
-                spatial.update(evaluator.evaluate(policy, rollouts, data.instructions, noise_seed,
-                                                  split="spatial"))
+                if cfg.spatial_episodes > 0:
+                    spatial.update(evaluator.evaluate(policy, rollouts, data.instructions,
+                                                      noise_seed, split="spatial"))
             heldout.update({t: heldout_loss(policy, data.heldout[t], derive_seed("heldout", t))
                             for t in group})
     nan = float("nan")
