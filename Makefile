@@ -17,7 +17,7 @@ OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v)
 quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
 .PHONY: bench compare sweep study report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
-	bench-eval libero-check
+	bench-eval libero-check test-slow
 
 $(STAMP): requirements.lock pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -71,8 +71,13 @@ bench-eval: $(STAMP)
 libero-check: $(STAMP)
 	$(PY) -m suites.libero.build_all $(LIBERO_SUITES)
 
+# the suite without its slow checks (pytest -m slow: reruns, kills and resumes of whole runs, and
+# statistics over many scenes; about 5 minutes more), which test-slow runs; CI runs both
 test: $(STAMP)
-	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings tests
+	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings -m "not slow" tests
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings -m slow tests
 
 lint: $(STAMP)
 	$(PY) -m ruff check harness methods suites policies tests

@@ -119,6 +119,7 @@ class BatchSizeReach(ReachController):
         return action[:, None].expand(-1, self.config.chunk_size, -1) + 0.05 * noise
 
 
+@pytest.mark.slow
 def test_cpu_outcomes_do_not_depend_on_the_number_of_evaluation_workers():
     """Issue 14's executors give a job 1 or 2 evaluation workers depending on how many jobs share
     the machine; the fixed shards keep every policy call's batch, so the results are identical."""

@@ -57,6 +57,7 @@ def serial(tmp_path_factory):
     return tmp, _outputs(tmp / "results")
 
 
+@pytest.mark.slow
 def test_local_processes_match_serial(tmp_path, serial):
     # the serial run's demos, not its foundations: the worker processes build those too
     for part in ("demos", "instructions"):
@@ -72,6 +73,7 @@ def test_local_processes_match_serial(tmp_path, serial):
     assert len(runs) == 5 and all(r.info.status == "FINISHED" for r in runs)
 
 
+@pytest.mark.slow
 def test_ray_worker_killed_mid_stage_is_retried_and_continues(tmp_path, serial):
     """Kill the Ray worker running a job (its pid from Ray's own log prefix) once the job's
     stage 1 is done: Ray runs the task again, it resumes after stage 1, results are the same."""
@@ -95,6 +97,7 @@ def test_ray_worker_killed_mid_stage_is_retried_and_continues(tmp_path, serial):
     assert len(runs) == 5 and all(r.info.status == "FINISHED" for r in runs)
 
 
+@pytest.mark.slow
 def test_killed_comparison_rerun_leaves_one_finished_run_per_job(tmp_path, serial):
     cmd = _cmd(tmp_path / "results", serial[0] / "cache", "executor=local", "jobs=2",
                "eval_workers=1")

@@ -48,6 +48,7 @@ def reference(tmp_path_factory):
     return tmp, _outputs(tmp)
 
 
+@pytest.mark.slow
 def test_killed_runs_resume_to_the_same_results(tmp_path, reference):
     # killed while generating demos, while training the foundation, and mid-stream
     _kill_when(_cmd(tmp_path), "[retain] mw-quick-tiny", 1.5)
@@ -60,6 +61,7 @@ def test_killed_runs_resume_to_the_same_results(tmp_path, reference):
     assert not list(tmp_path.rglob(".*.tmp"))  # no half-written file left behind
 
 
+@pytest.mark.slow
 def test_same_seed_same_results_and_other_seed_differs(tmp_path, reference):
     proc = _run(_cmd(tmp_path, "eval_workers=2"))  # also: worker count does not change results
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -110,6 +112,7 @@ def test_unreachable_tracking_server_is_reported_before_training(tmp_path):
     assert time.time() - start < 60
 
 
+@pytest.mark.slow
 def test_three_processes_logging_to_one_store_lose_no_run(tmp_path, reference):
     from mlflow.tracking import MlflowClient
 

@@ -95,6 +95,7 @@ def test_demo_episodes_are_fresh_seeded_scenes_not_evaluation_states(object_env)
     assert not np.isclose(init_states(OBJECT_TASK), first).all(axis=1).any()
 
 
+@pytest.mark.slow
 def test_demo_starts_spread_the_arm_like_liberos_init_states(object_env):
     """LIBERO's 50 init states start the arm's 7 joints about 0.02 rad from its home pose: demos
     that all started at the home pose left the policy lost from every evaluation start."""
