@@ -184,6 +184,7 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
     parent = tracker.continue_or_start_run(invocation_key(cfg.name, [k for *_, k in keyed]),
                                            f"{cfg.name}:{cfg.method}", tags={"benchmark": cfg.name})
     tracker.log_params(parent, provenance_params(cfg, provenance))
+    tracker.record_commit(parent, provenance["git_commit"])
     tracking = Tracking(tracker.uri, parent, provenance)
     slots = plan_slots(cfg, len(keyed))
     start, machine_start = time.time(), _machine_cpu()
@@ -342,6 +343,7 @@ def _child_run(tracker, variant: Variant, seed: int, key: str, parent: str, prov
     tracker.log_params(child, {**provenance_params(cfg, provenance),
                                **{f"method.{k}": v for k, v in method.hyperparameters().items()},
                                "method": method.name, "seed": seed})
+    tracker.record_commit(child, provenance["git_commit"])
     return child
 
 

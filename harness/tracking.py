@@ -27,6 +27,7 @@ PACKAGES = ("torch", "numpy", "mujoco", "metaworld", "robosuite", "mlflow", "h5p
             "sentence-transformers")
 _MAX_BATCH = 1000  # MLflow's limit on metrics per log_batch call
 KEY_TAG = "retain.key"  # a job's (or an invocation's) identity: a rerun continues its run
+COMMITS_TAG = "retain.git_commits"  # every commit that ran part of a run, in order
 
 
 def tracking_uri(results_dir: str) -> str:
@@ -34,6 +35,12 @@ def tracking_uri(results_dir: str) -> str:
     if uri:
         return uri
     return f"sqlite:///{Path(results_dir).resolve() / 'mlflow.db'}"
+
+
+def run_commits(params: dict[str, str], tags: dict[str, str]) -> list[str]:
+    """The commits that ran a run: its commits tag, or (logged before the tag) its param."""
+    listed = tags.get(COMMITS_TAG) or params.get("git_commit", "")
+    return [c for c in listed.split(",") if c]
 
 
 def package_versions() -> dict[str, str]:
@@ -135,6 +142,15 @@ class Tracker:
             tags["mlflow.parentRunId"] = parent_id
         self.set_tags(run_id, tags)
         return run_id
+
+    def record_commit(self, run_id: str, commit: str) -> None:
+        """Add `commit` to the run's commits tag. Why a tag: MLflow params cannot change, so a
+        job resumed at another commit keeps its first attempt's `git_commit` param."""
+        data = self.client.get_run(run_id).data
+        seen = run_commits(data.params, data.tags)
+        listed = ",".join(seen if commit in seen else [*seen, commit])
+        if data.tags.get(COMMITS_TAG) != listed:
+            self.client.set_tag(run_id, COMMITS_TAG, listed)
 
     def status(self, run_id: str) -> str:
         return self.client.get_run(run_id).info.status

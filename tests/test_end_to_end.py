@@ -57,6 +57,8 @@ def test_mlflow_has_parent_and_child_runs(tiny_run):
     child = children[0]
     assert child.data.tags["mlflow.parentRunId"] == parents[0].info.run_id
     assert child.data.params["method"] == "sft" and child.data.params["config.seed"] == "0"
+    for run in (child, parents[0]):  # the commit that ran it, as a tag a resumed run extends
+        assert run.data.tags["retain.git_commits"] == run.data.params["git_commit"] != ""
     assert "retention" in child.data.metrics and "foundation_success" in child.data.metrics
     history = client.get_metric_history(child.info.run_id, "foundation_success")
     assert sorted(m.step for m in history) == [0, 1, 2]

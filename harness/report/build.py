@@ -93,7 +93,7 @@ def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: in
                      figures: list[str], heatmaps: dict[str, str]) -> str:
     runs = [r for s in summaries for r in s.row.runs]
     seeds = sorted({r.seed for r in runs})
-    commits = sorted({r.params.get("git_commit", "unknown") for r in runs})
+    commits = sorted({c for r in runs for c in r.commits or ("unknown",)})
     lines = [
         f"# {benchmark}: comparison of fine-tuning methods",
         "",

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.errors import RetainError
-from harness.tracking import metric_key, quiet_mlflow
+from harness.tracking import metric_key, quiet_mlflow, run_commits
 
 PARENT_TAG = "mlflow.parentRunId"
 
@@ -48,6 +48,7 @@ class RunRecord:
     success: np.ndarray  # R[stage, task], stages 0..k, tasks = foundation then stream
     layers: list[LayerUpdate]
     needs: str = ""  # the `needs` tag ("past data, reference copy", "none"); "" if not logged
+    commits: tuple[str, ...] = ()  # the commits that ran it (more than one if resumed at another)
 
     @property
     def tasks(self) -> list[str]:
@@ -108,6 +109,7 @@ def _record(client, run) -> RunRecord:
         foundation_tasks=foundation, stream_tasks=stream,
         success=_success_matrix(client, run.info.run_id, foundation + stream, len(stream)),
         layers=_layer_updates(client, run.info.run_id), needs=tags.get("needs", ""),
+        commits=tuple(run_commits(params, tags)),
     )
 
 
