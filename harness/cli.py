@@ -182,9 +182,9 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
     keyed = [(seed, variant, variant_job_key(variant, suite, seed)) for seed, variant in runs]
     seeds = sorted({seed for seed, _ in runs})
     parent = tracker.continue_or_start_run(invocation_key(cfg.name, [k for *_, k in keyed]),
-                                           f"{cfg.name}:{cfg.method}", tags={"benchmark": cfg.name})
+                                           f"{cfg.name}:{cfg.method}", provenance["git_commit"],
+                                           tags={"benchmark": cfg.name})
     tracker.log_params(parent, provenance_params(cfg, provenance))
-    tracker.record_commit(parent, provenance["git_commit"])
     tracking = Tracking(tracker.uri, parent, provenance)
     slots = plan_slots(cfg, len(keyed))
     start, machine_start = time.time(), _machine_cpu()
@@ -338,12 +338,11 @@ def _child_run(tracker, variant: Variant, seed: int, key: str, parent: str, prov
     tags["needs"] = method.needs()  # past data, reference copy, task identity: the report marks it
     if variant.point:
         tags["sweep_point"] = variant.point
-    child = tracker.continue_or_start_run(key, f"{variant.label}/seed{seed}", parent_id=parent,
-                                          tags=tags)
+    child = tracker.continue_or_start_run(key, f"{variant.label}/seed{seed}",
+                                          provenance["git_commit"], parent_id=parent, tags=tags)
     tracker.log_params(child, {**provenance_params(cfg, provenance),
                                **{f"method.{k}": v for k, v in method.hyperparameters().items()},
                                "method": method.name, "seed": seed})
-    tracker.record_commit(child, provenance["git_commit"])
     return child
 
 

@@ -124,33 +124,29 @@ class Tracker:
             tags["mlflow.parentRunId"] = parent_id
         return self.client.create_run(self.experiment_id, run_name=name, tags=tags).info.run_id
 
-    def continue_or_start_run(self, key: str, name: str, parent_id: str | None = None,
+    def continue_or_start_run(self, key: str, name: str, commit: str, parent_id: str | None = None,
                               tags: dict[str, str] | None = None) -> str:
-        """The run tagged with `key` (set RUNNING again, whatever a kill left it as), or a new one.
+        """The run tagged with `key` (set RUNNING again, whatever a kill left it as), or a new one;
+        either way its commits tag gains `commit`.
 
         Why: a job retried after a lost worker, or a command rerun after a kill, is the same
-        job; one run per job keeps the store free of RUNNING orphans and duplicates."""
+        job; one run per job keeps the store free of RUNNING orphans and duplicates. Why a tag
+        for the commits: MLflow params cannot change, so a job resumed at another commit keeps
+        its first attempt's `git_commit` param."""
         found = self.client.search_runs([self.experiment_id],
                                         filter_string=f"tags.`{KEY_TAG}` = '{key}'",
                                         order_by=["attribute.start_time DESC"], max_results=1)
         tags = {**(tags or {}), KEY_TAG: key}
         if not found:
-            return self.start_run(name, parent_id, tags)
-        run_id = found[0].info.run_id
-        self.client.update_run(run_id, status="RUNNING")
+            return self.start_run(name, parent_id, {**tags, COMMITS_TAG: commit})
+        run = found[0]
+        seen = run_commits(run.data.params, run.data.tags)
+        tags[COMMITS_TAG] = ",".join(seen if commit in seen else [*seen, commit])
+        self.client.update_run(run.info.run_id, status="RUNNING")
         if parent_id is not None:
             tags["mlflow.parentRunId"] = parent_id
-        self.set_tags(run_id, tags)
-        return run_id
-
-    def record_commit(self, run_id: str, commit: str) -> None:
-        """Add `commit` to the run's commits tag. Why a tag: MLflow params cannot change, so a
-        job resumed at another commit keeps its first attempt's `git_commit` param."""
-        data = self.client.get_run(run_id).data
-        seen = run_commits(data.params, data.tags)
-        listed = ",".join(seen if commit in seen else [*seen, commit])
-        if data.tags.get(COMMITS_TAG) != listed:
-            self.client.set_tag(run_id, COMMITS_TAG, listed)
+        self.set_tags(run.info.run_id, tags)
+        return run.info.run_id
 
     def status(self, run_id: str) -> str:
         return self.client.get_run(run_id).info.status
