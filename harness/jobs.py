@@ -170,7 +170,9 @@ def run_job(job: Job, evaluator=None, data=None):
         logger.flush()
         if len(cfg.stream_tasks) not in tracker.logged_steps(child, "retention"):
             tracker.log_metrics(child, result.metrics, step=len(cfg.stream_tasks))
-        paths = write_run_outputs(cfg, result, job.tracking.provenance)
+        # a job resumed at another commit: its files name every commit, as its MLflow run does
+        provenance = {**job.tracking.provenance, "git_commits": tracker.commits(child)}
+        paths = write_run_outputs(cfg, result, provenance)
         for path in paths.values():
             tracker.log_artifact(child, path)
         status = "FINISHED"

@@ -148,6 +148,11 @@ class Tracker:
         self.set_tags(run.info.run_id, tags)
         return run.info.run_id
 
+    def commits(self, run_id: str) -> list[str]:
+        """Every commit that ran part of the run, first to last."""
+        data = self.client.get_run(run_id).data
+        return run_commits(data.params, data.tags)
+
     def status(self, run_id: str) -> str:
         return self.client.get_run(run_id).info.status
 

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 
 from harness.cli import main
 
@@ -42,6 +43,8 @@ def test_outputs_on_disk(tiny_run):
     assert metrics["nbt"] == pytest.approx((max(curves[0]) - R[2, 2]) / 2)
     config = (run / "config.yaml").read_text()
     assert "git_commit" in config and "torch" in config and "steps_per_task: 10" in config
+    provenance = yaml.safe_load(config)
+    assert provenance["git_commits"] == [provenance["git_commit"]]  # one attempt, one commit
 
 
 def test_mlflow_has_parent_and_child_runs(tiny_run):

@@ -16,6 +16,7 @@ def test_a_resumed_run_lists_both_commits_and_a_rerun_at_the_same_one_adds_none(
     data = tracker.client.get_run(again).data
     assert again == first and data.params["git_commit"] == "aaa"
     assert data.tags[COMMITS_TAG] == "aaa,bbb" and run_commits(data.params, data.tags) == ["aaa", "bbb"]
+    assert tracker.commits(again) == ["aaa", "bbb"]  # what the run's config.yaml lists
 
 
 def test_a_run_logged_before_the_tag_reads_its_param():
