@@ -45,7 +45,7 @@ sweep: $(STAMP)
 	$(REPORT)
 
 # a study's parts, each a comparison that resumes where it stopped, then each part's report:
-#   make study STUDY=regimes [PART=mw-broad-6] [DRY=1] [executor=local jobs=2]; docs/study.md
+#   make study STUDY=regimes [PART=mw-broad-6] [SEED=0 SEEDS=1] [DRY=1] [executor=local jobs=2]; docs/study.md
 study: $(STAMP)
 	$(PY) -m harness study $(call quote,$(OVERRIDES))
 

@@ -1,4 +1,4 @@
-"""`python -m harness study STUDY=regimes [PART=mw-broad-6,...] [DRY=1] [executor=local jobs=2]`.
+"""`python -m harness study STUDY=regimes [PART=mw-broad-6,...] [SEED=0 SEEDS=1] [DRY=1] [executor=local jobs=2]`.
 
 A study is a named list of parts (harness/studies/<name>.yaml). A part is one benchmark with the
 runs to compare on it ("sft", "sft lr=1e-4", "consft variant=dft"), each for the same seeds.
@@ -6,7 +6,8 @@ Why parts and not one long command: a study takes days on two cores, so it has t
 and continue after a restart. A part's runs are planned by `harness bench`'s own planning
 (harness.cli.plan), merged into one comparison on one executor, and only the jobs whose MLflow
 run is not FINISHED are run; an unfinished one resumes after its last finished stage. After each
-part its report is rebuilt (harness.report).
+part its report is rebuilt (harness.report). SEED= and SEEDS= pick a piece of each part's seeds
+(`SEED=1 SEEDS=1`: seed 1 only), for a machine that has time for one seed's jobs but not three.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ STUDY_DIR = Path(__file__).parent / "studies"
 # command-line settings a study passes to every part: where and how its jobs run, never what
 # they measure (so the pieces of one study stay one study)
 PASS_THROUGH = frozenset(NOT_IN_RUN_KEY) - {"seed", "seeds", "method", "grid", "profile"}
-STUDY_KEYS = ("STUDY", "PART", "DRY")
+STUDY_KEYS = ("STUDY", "PART", "DRY", "SEED", "SEEDS")
 PART_KEYS = ("bench", "runs", "seeds", "profile", "settings")
 # settings runs of one part may not differ in: one part builds one foundation per seed
 SHARED_BY_PART = SHARED_BY_SWEEP_POINTS - {"method"}
@@ -44,12 +45,22 @@ class StudyPart:
     profile: str = ""
     settings: tuple[tuple[str, str], ...] = ()  # for every run: policy=pi0, name=<experiment>
 
-    def run_args(self, run: str, extra: list[str]) -> list[str]:
-        """The `harness bench` arguments of one run of this part."""
+    def run_args(self, run: str, extra: list[str], seeds: range | None = None) -> list[str]:
+        """The `harness bench` arguments of one run of this part, for all its seeds or a piece."""
         method, *rest = run.split()
+        seeds = range(self.seeds) if seeds is None else seeds
         profile = [f"PROFILE={self.profile}"] if self.profile else []
-        return [f"BENCH={self.bench}", *profile, f"METHOD={method}", f"SEEDS={self.seeds}",
-                *(f"{k}={v}" for k, v in self.settings), *rest, *extra]
+        return [f"BENCH={self.bench}", *profile, f"METHOD={method}", f"SEED={seeds.start}",
+                f"SEEDS={len(seeds)}", *(f"{k}={v}" for k, v in self.settings), *rest, *extra]
+
+    def seed_piece(self, first: int, count: int | None) -> range:
+        """Seeds first .. first + count - 1 (to the last when count is None), within 0 .. seeds - 1."""
+        last = self.seeds if count is None else first + count
+        if first < 0 or (count is not None and count < 1) or last > self.seeds:
+            shown = f"SEED={first}" + ("" if count is None else f" SEEDS={count}")
+            raise RetainError(f"bad seed piece {shown} for part {self.name!r}: its seeds are "
+                              f"0-{self.seeds - 1}")
+        return range(first, last)
 
 
 @dataclass(frozen=True)
@@ -113,21 +124,24 @@ class PartPlan:
     part: StudyPart
     plan: Plan  # every run's variants; the first run's config, which they all share
     jobs: list[tuple[int, Variant, str]]  # (seed, variant, job key), seeds outer
+    seeds: range  # the part's seeds, or the piece of them asked for
 
     @property
     def experiment(self) -> str:
         return self.plan.cfg.name
 
 
-def plan_part(part: StudyPart, extra: list[str]) -> PartPlan:
-    """Plan every run of the part (nothing is trained or written) and check that they can share
-    one foundation per seed and never share a run directory."""
+def plan_part(part: StudyPart, extra: list[str], seeds: range | None = None) -> PartPlan:
+    """Plan every run of the part, for its seeds or a piece of them (nothing is trained or
+    written), and check that they can share one foundation per seed and never share a run
+    directory."""
     from suites import get_suite
 
+    seeds = range(part.seeds) if seeds is None else seeds
     plans = []
     for run in part.runs:
         try:
-            plans.append(plan(part.run_args(run, extra)))
+            plans.append(plan(part.run_args(run, extra, seeds)))
         except USER_ERRORS as exc:
             raise RetainError(f"study part {part.name!r}, run {run!r}: {exc}") from None
     first = plans[0].cfg
@@ -147,7 +161,7 @@ def plan_part(part: StudyPart, extra: list[str]) -> PartPlan:
     suite = get_suite(cfg.suite)
     jobs = [(seed, v, variant_job_key(v, suite, seed)) for seed in cfg.seed_list()
             for v in variants]
-    return PartPlan(part, Plan(cfg, variants), jobs)
+    return PartPlan(part, Plan(cfg, variants), jobs, seeds)
 
 
 def finished_keys(pp: PartPlan) -> set[str]:
@@ -183,8 +197,10 @@ def describe(study: Study, plans: list[PartPlan]) -> str:
         done = finished_keys(pp)
         started = [(s, v) for s, v, k in pp.jobs if k not in done and stages_done(s, v)]
         todo = len(pp.jobs) - len(done) - len(started)
+        piece = "" if len(pp.seeds) == pp.part.seeds else \
+            f" (seeds {pp.seeds.start}-{pp.seeds.stop - 1} of 0-{pp.part.seeds - 1})"
         lines.append(f"  {pp.part.name}: {pp.experiment}, {len(pp.plan.variants)} runs x "
-                     f"{pp.part.seeds} seeds = {len(pp.jobs)} jobs: {len(done)} finished, "
+                     f"{len(pp.seeds)} seeds{piece} = {len(pp.jobs)} jobs: {len(done)} finished, "
                      f"{len(started)} started, {todo} to do")
         lines.append(f"    runs: {', '.join(v.label for v in pp.plan.variants)}")
         finished: dict[str, list[str]] = {}
@@ -245,7 +261,10 @@ def study(args: list[str]) -> int:
     s = load_study(given["STUDY"])
     parts = select_parts(s, given.get("PART", ""))
     extra = [f"{k}={v}" for k, v in given.items() if k in PASS_THROUGH]
-    plans = [plan_part(part, extra) for part in parts]  # every part checked before any runs
+    first = coerce("SEED", given.get("SEED", "0") or "0", int)
+    count = coerce("SEEDS", given["SEEDS"], int) if given.get("SEEDS") else None
+    # every part checked before any runs
+    plans = [plan_part(part, extra, part.seed_piece(first, count)) for part in parts]
     if coerce("DRY", given.get("DRY", "0") or "0", bool):
         print(describe(s, plans))
         return 0

@@ -41,6 +41,21 @@ def test_regimes_parts_expand_to_their_jobs(tmp_path):
     assert not (tmp_path / "results").exists() and not (tmp_path / "cache").exists()
 
 
+def test_a_seed_piece_plans_the_same_jobs_as_the_whole_part(tmp_path):
+    """SEED=1 SEEDS=1 plans seed 1's jobs only, under the keys the whole part gives them (so a
+    piece's finished jobs count as the part's), and a piece outside the part's seeds fails."""
+    part = load_study("regimes").parts["mw-broad"]
+    extra = [f"results_dir={tmp_path}/results", f"cache_dir={tmp_path}/cache"]
+    whole = plan_part(part, extra)
+    piece = plan_part(part, extra, part.seed_piece(1, 1))
+    assert [seed for seed, *_ in piece.jobs] == [1] * 7
+    assert [key for *_, key in piece.jobs] == [key for seed, _, key in whole.jobs if seed == 1]
+    assert part.seed_piece(1, None) == range(1, 3)
+    for first, count in ((3, 1), (2, 2), (0, 0), (-1, 1)):
+        with pytest.raises(RetainError, match=f"SEED={first} SEEDS={count} .*'mw-broad'.* 0-2"):
+            part.seed_piece(first, count)
+
+
 def test_libero_part_plans_on_real_libero_tasks(tmp_path):
     pp = plan_part(load_study("regimes").parts["libero-broad"], [f"results_dir={tmp_path}"])
     assert len(pp.jobs) == 21 and pp.plan.cfg.suite == "libero"
@@ -73,6 +88,7 @@ def test_breadth_benchmarks_are_nested_and_share_the_stream():
     (["STUDY=regimes", "PART=mw-broad-7"], ["'mw-broad-7'", "mw-broad-6", "libero-broad"]),
     (["STUDY=regimes", "lr=0.1"], ["'lr'", "executor"]),
     (["PART=mw-broad-6"], ["STUDY=", "regimes"]),
+    (["STUDY=regimes", "PART=mw-broad-6", "SEED=2", "SEEDS=2"], ["SEED=2 SEEDS=2", "0-2"]),
 ])
 def test_bad_study_input_is_one_line(tmp_path, args, expected):
     cmd = [sys.executable, "-m", "harness", "study", f"results_dir={tmp_path}/results", *args]
