@@ -168,18 +168,24 @@ def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> s
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def _last_finished(checkpoints: Path, k: int, run_key: str) -> int | None:
-    """The highest stage whose checkpoint exists and was made with these exact settings."""
+def resumable_stage(checkpoints: Path, k: int, run_key: str) -> int | None:
+    """The highest stage whose checkpoint exists, if it was made with these exact settings;
+    None when there is none or it was made with others (the run then starts over)."""
     for stage in range(k, 0, -1):
         path = checkpoints / f"stage_{stage}.pt"
         if path.exists():
-            if load_checkpoint(path).get("run_key") == run_key:
-                return stage
-            print(f"note: {checkpoints} was written with other settings; starting this run over")
-            for old in checkpoints.glob("stage_*.pt"):
-                old.unlink()
-            return None
+            return stage if load_checkpoint(path).get("run_key") == run_key else None
     return None
+
+
+def _last_finished(checkpoints: Path, k: int, run_key: str) -> int | None:
+    """`resumable_stage`, after removing the checkpoints of other settings."""
+    resumed = resumable_stage(checkpoints, k, run_key)
+    if resumed is None and any(checkpoints.glob("stage_*.pt")):
+        print(f"note: {checkpoints} was written with other settings; starting this run over")
+        for old in checkpoints.glob("stage_*.pt"):
+            old.unlink()
+    return resumed
 
 
 def summary_metrics(cfg: BenchConfig, result: RunResult) -> dict[str, float]:

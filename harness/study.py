@@ -184,10 +184,18 @@ def finished_keys(pp: PartPlan) -> set[str]:
 
 
 def stages_done(seed: int, variant: Variant) -> int:
-    """Stage checkpoints in the job's run directory (what a restart resumes after)."""
-    from harness.runner import run_dir
+    """The stage a restart of the job resumes after: its last checkpoint, if made with the job's
+    settings (one made with others, such as an earlier version of the benchmark, is not)."""
+    from harness.foundation import foundation_key
+    from harness.runner import resumable_stage, run_dir, run_settings_key
+    from suites import get_suite
 
-    return len(list((run_dir(variant.cfg, variant.label, seed) / "stages").glob("stage_*.pt")))
+    cfg = variant.cfg
+    checkpoints = run_dir(cfg, variant.label, seed) / "stages"
+    if not checkpoints.is_dir():
+        return 0
+    run_key = run_settings_key(cfg, variant.method, foundation_key(cfg, get_suite(cfg.suite), seed))
+    return resumable_stage(checkpoints, len(cfg.stream_tasks), run_key) or 0
 
 
 def describe(study: Study, plans: list[PartPlan]) -> str:

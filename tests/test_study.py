@@ -7,10 +7,11 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from harness.config import load_benchmark
 from harness.errors import RetainError
-from harness.study import load_study, plan_part, study
+from harness.study import load_study, plan_part, stages_done, study
 
 ROOT = Path(__file__).resolve().parents[1]
 METHOD_LABELS = ["sft", "sft[lr=0.0001]", "sft[lr=3e-05]", "consft", "consft[variant=dft]",
@@ -126,10 +127,21 @@ def test_tiny_study_runs_then_resumes_without_training(tmp_path, capsys, forbid_
     assert study(args + ["DRY=1"]) == 0
     assert "quick: mw-quick-tiny, 2 runs x 1 seeds = 2 jobs: 0 finished, 0 started, 2 to do" \
         in capsys.readouterr().out
+    # a checkpoint left by other settings (an earlier version of the benchmark) is no start:
+    # the listing says "to do", and the run starts over
+    base = tmp_path / "results" / "mw-quick-tiny"
+    stale = base / "sft" / "seed0" / "stages" / "stage_1.pt"
+    stale.parent.mkdir(parents=True)
+    torch.save({"run_key": "other settings"}, stale)
+    assert study(args + ["DRY=1"]) == 0
+    assert "2 jobs: 0 finished, 0 started, 2 to do" in capsys.readouterr().out
     assert study(args) == 0
     out = capsys.readouterr().out
     assert "[study] part quick: 2 of 2 jobs to run (0 finished)" in out
-    base = tmp_path / "results" / "mw-quick-tiny"
+    assert "was written with other settings; starting this run over" in out
+    pp = plan_part(load_study(str(path)).parts["quick"], args[1:4])
+    assert [stages_done(seed, v) for seed, v, _ in pp.jobs] == [2, 2]  # tiny's two stream stages
+    assert all(len(v.cfg.stream_tasks) == 2 for _, v, _ in pp.jobs)
     matrices = {label: (base / label / "seed0" / "success_matrix.csv").read_text()
                 for label in ("sft", "consft[variant=dft]")}
     assert (base / "report" / "summary.md").exists()
