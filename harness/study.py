@@ -45,10 +45,9 @@ class StudyPart:
     profile: str = ""
     settings: tuple[tuple[str, str], ...] = ()  # for every run: policy=pi0, name=<experiment>
 
-    def run_args(self, run: str, extra: list[str], seeds: range | None = None) -> list[str]:
-        """The `harness bench` arguments of one run of this part, for all its seeds or a piece."""
+    def run_args(self, run: str, extra: list[str], seeds: range) -> list[str]:
+        """The `harness bench` arguments of one run of this part, for its seeds or a piece."""
         method, *rest = run.split()
-        seeds = range(self.seeds) if seeds is None else seeds
         profile = [f"PROFILE={self.profile}"] if self.profile else []
         return [f"BENCH={self.bench}", *profile, f"METHOD={method}", f"SEED={seeds.start}",
                 f"SEEDS={len(seeds)}", *(f"{k}={v}" for k, v in self.settings), *rest, *extra]
