@@ -23,7 +23,8 @@ from policies.flow_matching.modeling import ARCHITECTURE_VERSION
 from suites import Suite
 from suites.base import CAMERA_KEYS
 
-FOUNDATION_VERSION = 4  # bump when the training code changes what a cached checkpoint holds
+FOUNDATION_VERSION = 5  # bump when the training code changes what a cached checkpoint holds
+# (5: instruction embeddings encoded one text at a time, policies/text_encoder.py)
 
 
 @dataclass

@@ -1,9 +1,12 @@
 """The frozen instruction encoder: all-MiniLM-L6-v2, loaded offline from its wheel.
 
 Embeddings are computed once per instruction and cached on disk, so the encoder is loaded only
-the first time an instruction is seen; the policy's learned projection does the rest. Policies
-that read language tokens (pi0) get the instruction's MiniLM token ids, cached the same way, and
-embed them with MiniLM's frozen token-embedding table.
+the first time an instruction is seen; the policy's learned projection does the rest. Each is
+encoded on its own: in a batch MiniLM pads every text to the longest, which moves the floats
+(by ~1e-7), so a cached embedding, and every run that reads it, would depend on which
+instructions happened to be missing together. Policies that read language tokens (pi0) get the
+instruction's MiniLM token ids, cached the same way, and embed them with MiniLM's frozen
+token-embedding table.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 ENCODER_NAME = "all-MiniLM-L6-v2"
 EMBEDDING_DIM = 384
 MAX_TOKENS = 32  # token ids per instruction, [CLS] ... [SEP] then padding (id 0)
+EMBEDDING_VERSION = 2  # in the cache key; 2: each text encoded alone (1's floats hung on its batch)
 
 
 @lru_cache(maxsize=1)
@@ -36,21 +40,8 @@ def _model():
 def embed_instructions(instructions: list[str], cache_dir: Path | None = None) -> np.ndarray:
     """[N, 384] float32 unit-norm embeddings, read from `cache_dir` when computed before."""
     out = np.zeros((len(instructions), EMBEDDING_DIM), dtype=np.float32)
-    missing = []
-    for i, text in enumerate(instructions):
-        path = _cache_path(cache_dir, text)
-        if path is not None and path.exists():
-            out[i] = np.load(path)
-        else:
-            missing.append(i)
-    if missing:
-        vectors = _model().encode([instructions[i] for i in missing], normalize_embeddings=True)
-        for i, vec in zip(missing, vectors):
-            out[i] = vec
-            path = _cache_path(cache_dir, instructions[i])
-            if path is not None:
-                _save(path, vec.astype(np.float32))
-    return out
+    encode = lambda text: _model().encode([text], normalize_embeddings=True)[0]  # alone: see above
+    return _fill_cached(out, instructions, cache_dir, f"v{EMBEDDING_VERSION}", encode)
 
 
 @lru_cache(maxsize=1)
@@ -64,13 +55,20 @@ def _tokenizer():
 def tokenize_instructions(instructions: list[str], cache_dir: Path | None = None) -> np.ndarray:
     """[N, MAX_TOKENS] int64 MiniLM token ids (0 = padding), read from `cache_dir` when cached."""
     out = np.zeros((len(instructions), MAX_TOKENS), dtype=np.int64)
-    for i, text in enumerate(instructions):
-        path = _cache_path(cache_dir, text, "tokens")
+    tokenize = lambda text: _tokenizer()(text, padding="max_length", max_length=MAX_TOKENS,
+                                         truncation=True)["input_ids"]
+    return _fill_cached(out, instructions, cache_dir, "tokens", tokenize)
+
+
+def _fill_cached(out: np.ndarray, texts: list[str], cache_dir: Path | None, kind: str,
+                 compute) -> np.ndarray:
+    """Row i of `out` is compute(texts[i]), read from the cache when there, else computed and cached."""
+    for i, text in enumerate(texts):
+        path = _cache_path(cache_dir, text, kind)
         if path is not None and path.exists():
             out[i] = np.load(path)
             continue
-        out[i] = _tokenizer()(text, padding="max_length", max_length=MAX_TOKENS,
-                              truncation=True)["input_ids"]
+        out[i] = compute(text)
         if path is not None:
             _save(path, out[i])
     return out
@@ -93,9 +91,9 @@ def _save(path: Path, array: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
-def _cache_path(cache_dir: Path | None, text: str, kind: str = "") -> Path | None:
+def _cache_path(cache_dir: Path | None, text: str, kind: str) -> Path | None:
     if cache_dir is None:
         return None
-    name = f"{ENCODER_NAME}\n{text}" if not kind else f"{ENCODER_NAME}\n{kind}\n{text}"
+    name = f"{ENCODER_NAME}\n{kind}\n{text}"
     key = hashlib.sha256(name.encode()).hexdigest()[:16]
     return Path(cache_dir) / f"{key}.npy"
