@@ -120,7 +120,7 @@ def run_job(job: Job, evaluator=None, data=None):
     from harness.run_outputs import write_run_outputs
     from harness.runner import make_method, run_stream
     from harness.stages import eval_settings
-    from harness.tracking import BatchedMetrics, Tracker
+    from harness.tracking import BatchedMetrics, Tracker, machine
     from methods import get_method
     from suites import get_suite
 
@@ -170,8 +170,11 @@ def run_job(job: Job, evaluator=None, data=None):
         logger.flush()
         if len(cfg.stream_tasks) not in tracker.logged_steps(child, "retention"):
             tracker.log_metrics(child, result.metrics, step=len(cfg.stream_tasks))
-        # a job resumed at another commit: its files name every commit, as its MLflow run does
-        provenance = {**job.tracking.provenance, "git_commits": tracker.commits(child)}
+        # a job resumed at another commit: its files name every commit, as its MLflow run does;
+        # the machine is this process's (a Ray worker's, not the driver's), the one that finished
+        provenance = {**job.tracking.provenance, "git_commits": tracker.commits(child),
+                      "machine": machine()}
+        tracker.set_tags(child, {f"retain.machine.{k}": v for k, v in provenance["machine"].items()})
         paths = write_run_outputs(cfg, result, provenance)
         for path in paths.values():
             tracker.log_artifact(child, path)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+import platform
 import subprocess
 import sys
 import time
@@ -51,6 +52,22 @@ def package_versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             out[name] = "absent"
     return out
+
+
+def machine() -> dict[str, str]:
+    """Where this process runs. The same job key and code gave other floats on another CPU
+    (docs/study.md: libero-broad's seed-1 foundation), so each run says which machine made it."""
+    return {"cpu": _cpu_model(), "cores": str(os.cpu_count() or 0), "platform": platform.platform()}
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
 
 
 def git_commit() -> str:

@@ -7,6 +7,7 @@ import pytest
 import yaml
 
 from harness.cli import main
+from harness.tracking import machine
 
 
 @pytest.fixture(scope="module")
@@ -45,6 +46,7 @@ def test_outputs_on_disk(tiny_run):
     assert "git_commit" in config and "torch" in config and "steps_per_task: 10" in config
     provenance = yaml.safe_load(config)
     assert provenance["git_commits"] == [provenance["git_commit"]]  # one attempt, one commit
+    assert provenance["machine"] == machine()  # the CPU that ran it: floats differ across CPUs
 
 
 def test_mlflow_has_parent_and_child_runs(tiny_run):
@@ -62,6 +64,7 @@ def test_mlflow_has_parent_and_child_runs(tiny_run):
     assert child.data.params["method"] == "sft" and child.data.params["config.seed"] == "0"
     for run in (child, parents[0]):  # the commit that ran it, as a tag a resumed run extends
         assert run.data.tags["retain.git_commits"] == run.data.params["git_commit"] != ""
+    assert child.data.tags["retain.machine.cpu"] == machine()["cpu"] != ""
     assert "retention" in child.data.metrics and "foundation_success" in child.data.metrics
     history = client.get_metric_history(child.info.run_id, "foundation_success")
     assert sorted(m.step for m in history) == [0, 1, 2]
