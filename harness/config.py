@@ -74,13 +74,45 @@ class BenchConfig:
     jobs: int = 0  # jobs at once; 0: as many as the cores allow given each job's workers
     device: str = "cpu"  # cpu, cuda or auto (CUDA when present); CUDA trains in bf16 autocast
     compile: bool = False  # torch.compile the policy (worth it on a GPU)
+    # -- the ConSFT paper's protocol (issue 36; docs/methods.md) ------------------------------
+    # stream stages of several tasks trained together (the paper's target is a whole suite): how
+    # many consecutive stream tasks each stage trains, [] for one task a stage. A benchmark file
+    # writes it as nested lists, `stream_tasks: [[a, b, c], d]`, which sets this.
+    stage_sizes: list[int] = field(default_factory=list)
+    # matched target success: a stage trains until its tasks reach this success on check
+    # episodes of their own (rolled out every check_every steps), or for steps_per_task; 0: off
+    until_success: float = 0.0
+    check_every: int = 250
+    check_episodes: int = 10  # per task, from the suite's "check" split, apart from evaluation's
+    # the fine-tuning optimizer, the same for every method (the foundation keeps torch's AdamW
+    # defaults); the paper's: betas (0.9, 0.95), eps 1e-8, lr 2.5e-5, weight decay 1e-10
+    adam_beta1: float = 0.9
+    adam_beta2: float = 0.999
+    adam_eps: float = 1e-8
+    # the paper's held-out suites: name -> foundation tasks, each reported on its own and
+    # averaged (its table 2: base, target, each held-out suite, the held-out average)
+    heldout_groups: dict[str, list[str]] = field(default_factory=dict)
+
+    def stream_stages(self) -> list[list[str]]:
+        """The stream tasks of each stage, in order (`stage_sizes`; one task a stage by default)."""
+        sizes = self.stage_sizes or [1] * len(self.stream_tasks)
+        starts = [sum(sizes[:i]) for i in range(len(sizes))]
+        return [self.stream_tasks[a:a + n] for a, n in zip(starts, sizes)]
+
+    @property
+    def num_stages(self) -> int:
+        """k: the number of stream stages."""
+        return len(self.stage_sizes) if self.stage_sizes else len(self.stream_tasks)
+
+    def all_tasks(self) -> list[str]:
+        return self.foundation_tasks + self.stream_tasks
 
     def workers(self) -> int:
         return self.eval_workers if self.eval_workers > 0 else (os.cpu_count() or 1)
 
     def evaluates_foundation(self, stage: int) -> bool:
         """Whether the foundation tasks are rolled out after `stage` (see foundation_eval_every)."""
-        return stage % self.foundation_eval_every == 0 or stage == len(self.stream_tasks)
+        return stage % self.foundation_eval_every == 0 or stage == self.num_stages
 
     def seed_list(self) -> list[int]:
         return list(range(self.seed, self.seed + self.seeds))
@@ -100,7 +132,7 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
     "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
-    "policy", "device", "compile"})
+    "policy", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups"})
 
 EXECUTORS = ("serial", "local", "ray")
 
@@ -112,13 +144,34 @@ NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eva
 # settings added after results were recorded, at the value that changes nothing: there a run
 # key leaves them out (earlier checkpoints still resume) and a report reads a run that never
 # logged them as having it (its rows keep their labels)
-QUIET_DEFAULTS: dict[str, Any] = {"spatial_episodes": 0, "eval_shards": 2, "foundation_eval_every": 1}
+QUIET_DEFAULTS: dict[str, Any] = {
+    "spatial_episodes": 0, "eval_shards": 2, "foundation_eval_every": 1, "stage_sizes": [],
+    "until_success": 0.0, "check_every": 250, "check_episodes": 10, "adam_beta1": 0.9,
+    "adam_beta2": 0.999, "adam_eps": 1e-8, "heldout_groups": {}}
 
 
 def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:
     """The settings a run's results depend on (what its run key hashes)."""
     return {k: v for k, v in cfg.as_dict().items()
             if k not in NOT_IN_RUN_KEY and not (k in QUIET_DEFAULTS and v == QUIET_DEFAULTS[k])}
+
+
+def check_protocol(cfg: BenchConfig) -> None:
+    """The settings of the paper's protocol that only make sense together."""
+    if cfg.stage_sizes and (min(cfg.stage_sizes) < 1 or sum(cfg.stage_sizes) != len(cfg.stream_tasks)):
+        raise RetainError(f"bad value {cfg.stage_sizes} for stage_sizes: expected sizes of at least "
+                          f"1 that add up to the {len(cfg.stream_tasks)} stream tasks")
+    if not 0.0 <= cfg.until_success <= 1.0:
+        raise RetainError(f"bad value {cfg.until_success} for until_success: expected 0 (off) or a "
+                          "success rate in (0, 1]")
+    if cfg.until_success > 0 and (cfg.check_every < 1 or cfg.check_episodes < 1):
+        raise RetainError(f"until_success needs check_every >= 1 and check_episodes >= 1; got "
+                          f"{cfg.check_every} and {cfg.check_episodes}")
+    for name, tasks in cfg.heldout_groups.items():
+        outside = [t for t in tasks if t not in cfg.foundation_tasks]
+        if outside:
+            raise RetainError(f"heldout_groups[{name!r}] names {outside[0]!r}, which is not a "
+                              f"foundation task of {cfg.name}")
 
 
 def benchmark_names() -> list[str]:
@@ -142,6 +195,11 @@ def load_benchmark(name: str) -> BenchConfig:
     missing = [k for k in ("name", "suite", "foundation_tasks", "stream_tasks") if k not in raw]
     if missing:
         raise RetainError(f"benchmark file {path} is missing {missing[0]!r}")
+    if isinstance(raw["stream_tasks"], list) and "stage_sizes" not in raw:
+        stages = [s if isinstance(s, list) else [s] for s in raw["stream_tasks"]]
+        raw["stream_tasks"] = [t for stage in stages for t in stage]
+        if any(len(s) != 1 for s in stages):
+            raw["stage_sizes"] = [len(s) for s in stages]
     cfg = BenchConfig(**{k: raw[k] for k in ("name", "suite", "foundation_tasks", "stream_tasks")})
     for key, value in raw.items():
         set_field(cfg, key, value)
@@ -152,7 +210,12 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
     """`tiny` shrinks any benchmark to seconds (tests); `paper` is the GPU scale."""
     if profile == "tiny":
         cfg.foundation_tasks = cfg.foundation_tasks[:2]
-        cfg.stream_tasks = cfg.stream_tasks[:2]
+        stages = [stage[:2] for stage in cfg.stream_stages()[:2]]
+        cfg.stream_tasks = [t for stage in stages for t in stage]
+        cfg.stage_sizes = [len(s) for s in stages] if cfg.stage_sizes else []
+        cfg.heldout_groups = {name: kept for name, tasks in cfg.heldout_groups.items()
+                              if (kept := [t for t in tasks if t in cfg.foundation_tasks])}
+        cfg.check_every, cfg.check_episodes = 5, 2
         cfg.demos_per_task, cfg.heldout_demos_per_task, cfg.eval_episodes = 3, 1, 2
         cfg.spatial_episodes = min(cfg.spatial_episodes, 2)
         cfg.max_episode_steps = min(cfg.max_episode_steps, 100)
@@ -230,7 +293,9 @@ def coerce(key: str, value: Any, annotation: Any) -> Any:
             items = value.split(",") if isinstance(value, str) else value
             if not isinstance(items, list):
                 raise ValueError
-            return [str(v).strip() for v in items if str(v).strip()]
+            element = typing.get_args(annotation)[0]
+            return [coerce(key, v, element) if element is not str else str(v).strip()
+                    for v in items if str(v).strip()]
         if origin is dict or annotation is Any or isinstance(annotation, types.GenericAlias):
             return value
     except (TypeError, ValueError):
@@ -295,6 +360,7 @@ def resolve(args: list[str]) -> BenchConfig:
     if cfg.foundation_eval_every < 1:
         raise RetainError(f"bad value {cfg.foundation_eval_every} for foundation_eval_every: "
                           "expected 1 (every stage) or more (stage 0, every N-th and the last)")
+    check_protocol(cfg)
     if cfg.jobs < 0:
         raise RetainError(f"bad value {cfg.jobs} for jobs: expected 0 (as many as the cores "
                           "allow) or more")

@@ -30,7 +30,8 @@ class BenchmarkData:
     # task -> {"instruction": [384] embedding, "instruction_tokens": [L] token ids}
     instructions: dict[str, dict[str, np.ndarray]]
 
-    def foundation(self, tasks: list[str]) -> TrainingData:
+    def combined(self, tasks: list[str]) -> TrainingData:
+        """The training samples of several tasks together: the foundation's, or a stage's."""
         return TrainingData.concat([self.train[t] for t in tasks])
 
 

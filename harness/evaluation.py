@@ -48,12 +48,16 @@ class EvalSettings:
     envs_per_task: int = 2  # simulators per task and worker; their episodes run one after another
     shards: int = 2  # interleaved shares of the episodes, each its own lockstep (on the CPU)
     spatial_episodes: int = 0  # per task, of the spatial probe's split (widened initial states)
+    check_episodes: int = 0  # per task, of the "check" split: matched-target stopping's own
 
     def episodes_of(self, split: str) -> int:
-        """Episodes per task of a split: "eval" (the success matrix) or "spatial" (the probe)."""
-        if split not in ("eval", "spatial"):
-            raise ValueError(f"unknown evaluation split {split!r}; valid: eval, spatial")
-        return self.episodes if split == "eval" else self.spatial_episodes
+        """Episodes per task of a split: "eval" (the success matrix), "spatial" (the probe) or
+        "check" (the episodes `until_success` stops on, never the evaluation's)."""
+        counts = {"eval": self.episodes, "spatial": self.spatial_episodes,
+                  "check": self.check_episodes}
+        if split not in counts:
+            raise ValueError(f"unknown evaluation split {split!r}; valid: {', '.join(counts)}")
+        return counts[split]
 
 
 @dataclass(frozen=True)

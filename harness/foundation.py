@@ -92,7 +92,7 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
         policy.load_state_dict(saved["policy"])
         final_loss = saved["final_loss"]
     else:
-        train = data.foundation(cfg.foundation_tasks)
+        train = data.combined(cfg.foundation_tasks)
         policy.state_norm.fit(train.obs["state"])
         policy.action_norm.fit(train.actions.flatten(0, 1))
         ctx = TaskContext(stage=0, task="foundation", data=train, policy=policy,

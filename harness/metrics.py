@@ -96,6 +96,35 @@ def spatial_metrics(S: np.ndarray, foundation: list[int], stream: list[int]) -> 
                           spatial_plasticity=plasticity(S, stream))
 
 
+def by_stage(R: np.ndarray, foundation: list[int], groups: list[list[int]]
+             ) -> tuple[np.ndarray, list[int], list[int]]:
+    """(R', F', S') with one column per stream stage: a stage that trained several tasks together
+    (the paper's target suite) is one column, their mean success, so every definition above
+    reads "task" as "stage". With one task a stage, R' is R with its columns reordered."""
+    cols = [R[:, foundation]] + [R[:, g].mean(axis=1, keepdims=True) for g in groups]
+    n = len(foundation)
+    return np.concatenate(cols, axis=1), list(range(n)), list(range(n, n + len(groups)))
+
+
+def paper_metrics(R: np.ndarray, tasks: list[str], foundation: list[str], stream: list[str],
+                  heldout_groups: dict[str, list[str]]) -> dict[str, float]:
+    """The ConSFT paper's table 2 columns: the target (every stream task) and each held-out
+    suite (a named group of foundation tasks), at the base (stage 0) and after the stream
+    (stage k), and the held-out average (the mean over the suites; without named suites, one
+    suite of every foundation task, so it equals retention)."""
+    groups = heldout_groups or {"foundation": foundation}
+
+    def mean(stage: int, names: list[str]) -> float:
+        return float(np.mean([R[stage, tasks.index(t)] for t in names]))
+
+    out = {"base_target": mean(0, stream), "target": mean(-1, stream)}
+    for name, names in groups.items():
+        out[f"base_heldout/{name}"], out[f"heldout/{name}"] = mean(0, names), mean(-1, names)
+    out["base_heldout_avg"] = float(np.mean([mean(0, g) for g in groups.values()]))
+    out["heldout_avg"] = float(np.mean([mean(-1, g) for g in groups.values()]))
+    return out
+
+
 def offline_retention(heldout: np.ndarray, foundation: list[int]) -> np.ndarray:
     """Held-out flow-matching loss on foundation tasks, stage i over stage 0: [k+1]."""
     losses = heldout[:, foundation].mean(axis=1)

@@ -49,7 +49,7 @@ class FlatAdamW:
 
     def __init__(self, flat: torch.nn.Parameter, lr: float, weight_decay: float,
                  grad_clip: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
-        self.flat, self.grad_clip = flat, grad_clip
+        self.flat, self.grad_clip, self.beta2, self.eps = flat, grad_clip, betas[1], eps
         self.hyper = dict(lr=lr, beta1=betas[0], beta2=betas[1], weight_decay=weight_decay,
                           eps=eps, amsgrad=False, maximize=False)
         self.exp_avg, self.exp_avg_sq = torch.zeros_like(flat), torch.zeros_like(flat)
@@ -65,3 +65,12 @@ class FlatAdamW:
         torch._fused_adamw_([self.flat.data], [grad], [self.exp_avg], [self.exp_avg_sq], [],
                             [self.step_count], grad_scale=divisor, **self.hyper)
         grad.zero_()  # backward accumulates into it in place
+
+    @torch.no_grad()
+    def frac_eps_dominated(self) -> float:
+        """The share of scalars whose update denominator sqrt(v_hat) + eps is set by eps:
+        sqrt(v_hat) < eps, where v_hat is the bias-corrected second moment."""
+        correction = 1 - self.beta2 ** float(self.step_count)
+        if correction <= 0:
+            return float("nan")
+        return (self.exp_avg_sq < self.eps ** 2 * correction).float().mean().item()

@@ -18,16 +18,23 @@ from harness.errors import RetainError
 from harness.evaluation import Evaluator
 from harness.foundation import Foundation, build_policy
 from harness.metrics import (
-    CoreMetrics,
+    by_stage,
     core_metrics,
     libero_metrics,
     offline_retention,
+    paper_metrics,
     spatial_metrics,
 )
 from harness.seeding import derive_seed, generator
-from harness.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
+from harness.stages import (
+    StageRecord,
+    evaluate_stage,
+    load_checkpoint,
+    save_checkpoint,
+    stage_name,
+)
 from harness.trainer import TrainSettings, train_stage
-from harness.updates import update_stats
+from harness.updates import paper_sparsity, update_stats
 from methods import Method, TaskContext
 from methods.base import snapshot
 from suites import Suite
@@ -100,22 +107,24 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
                            foundation_loss=foundation.final_loss, steps=cfg.steps_per_task)
 
     run_key = run_settings_key(cfg, method, foundation.key)
-    resumed = _last_finished(checkpoints, len(cfg.stream_tasks), run_key)
+    k = cfg.num_stages
+    resumed = _last_finished(checkpoints, k, run_key)
     if resumed is None:  # what a method keeps from stage 0 (a buffer, a Fisher) it takes now
-        method.after_task(context(0, "foundation", data.foundation(cfg.foundation_tasks)))
+        method.after_task(context(0, "foundation", data.combined(cfg.foundation_tasks)))
     else:
         saved = load_checkpoint(checkpoints / f"stage_{resumed}.pt")
         policy.load_state_dict(saved["policy"])
         method.load_state_dict(saved["method"])
         stages += [StageRecord(**r) for r in saved["records"]]
-        if resumed < len(cfg.stream_tasks):
-            print(f"[retain] {label} seed {seed}: resuming after stage {resumed} of "
-                  f"{len(cfg.stream_tasks)}", flush=True)
+        if resumed < k:
+            print(f"[retain] {label} seed {seed}: resuming after stage {resumed} of {k}", flush=True)
     layer_rows: list[dict] = []
-    settings = TrainSettings(cfg.steps_per_task, cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.grad_clip)
-    for stage, task in enumerate(cfg.stream_tasks, start=1):
+    settings = TrainSettings(cfg.steps_per_task, cfg.batch_size, cfg.lr, cfg.weight_decay,
+                             cfg.grad_clip, (cfg.adam_beta1, cfg.adam_beta2), cfg.adam_eps)
+    for stage, tasks in enumerate(cfg.stream_stages(), start=1):
         if stage <= len(stages) - 1:
             continue
+        name = stage_name(stage, tasks)
         previous = snapshot(policy)
         torch.manual_seed(derive_seed(seed, "stage", stage))
         offset = cfg.foundation_steps + (stage - 1) * cfg.steps_per_task
@@ -124,24 +133,13 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
             if log_step is not None:
                 log_step(offset + step, metrics)
 
-        curve_steps, curve = [0], [stages[-1].success[task]]
-
-        def learning_curve(done: int, task=task, curve_steps=curve_steps, curve=curve) -> None:
-            if done % cfg.learning_curve_every == 0 and done < cfg.steps_per_task:
-                result = evaluator.evaluate(method.mid_task_policy(policy), [task], data.instructions,
-                                            derive_seed(seed, "eval"))
-                curve_steps.append(done)
-                curve.append(result[task].success_rate)
-                policy.train()
-
-        result = train_stage(context(stage, task, data.train[task]), method, settings,
-                             generator(seed, "stage", stage), log,
-                             after_step=learning_curve if cfg.learning_curve_every > 0 else None)
-        record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, task, method)
+        watch = StageWatch(cfg, policy, method, evaluator, data, seed, tasks, theta0,
+                           stages[-1], log)
+        result = train_stage(context(stage, name, data.combined(tasks)), method, settings,
+                             generator(seed, "stage", stage), log, after_step=watch)
+        record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, name, method)
         record.train_loss = result.final_loss
-        if cfg.learning_curve_every > 0:
-            record.curve_steps = curve_steps + [cfg.steps_per_task]
-            record.curve = curve + [record.success[task]]
+        watch.finish(record, result.steps)
         current = snapshot(policy)
         record.updates, layer_rows = update_stats(theta0, current)
         record.updates_stage, _ = update_stats(previous, current)
@@ -154,10 +152,76 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
             on_stage(record)
     if not layer_rows:
         _, layer_rows = update_stats(theta0, snapshot(policy))
-    tasks = cfg.foundation_tasks + cfg.stream_tasks
+    tasks = cfg.all_tasks()
     result = RunResult(label, seed, out, stages, {}, tasks, layer_rows)
     result.metrics = summary_metrics(cfg, result)
     return result
+
+
+class StageWatch:
+    """What runs between a stage's steps (the trainer's `after_step`): the learning curve
+    (`learning_curve_every`), matched-target stopping (`until_success`: the stage's tasks rolled
+    out on their check episodes every `check_every` steps, stopping at the first check at the
+    threshold) and the paper's sparsity (Eq. 8) against the foundation at every check."""
+
+    def __init__(self, cfg: BenchConfig, policy, method: Method, evaluator: Evaluator,
+                 data: BenchmarkData, seed: int, tasks: list[str], theta0, before: StageRecord,
+                 log):
+        self.cfg, self.policy, self.method, self.evaluator = cfg, policy, method, evaluator
+        self.data, self.seed, self.tasks, self.theta0, self.log = data, seed, tasks, theta0, log
+        self.curve_steps = [0]
+        self.curve = [_mean(before.success[t] for t in tasks)]
+        self.checks: list[tuple[int, float]] = []  # (steps done, check success)
+        self.sparsity: list[tuple[int, float, dict[str, float]]] = []  # (steps, global, layers)
+
+    def _rollout(self, split: str) -> float:
+        result = self.evaluator.evaluate(self.method.mid_task_policy(self.policy), self.tasks,
+                                         self.data.instructions, derive_seed(self.seed, "eval"),
+                                         split=split)
+        self.policy.train()
+        return _mean(result[t].success_rate for t in self.tasks)
+
+    def _measure_sparsity(self, done: int) -> None:
+        # a method that wraps layers (LoRA) shows its merged weights, as evaluation sees them
+        value, layers = paper_sparsity(self.theta0, snapshot(self.method.mid_task_policy(self.policy)))
+        self.sparsity.append((done, value, layers))
+        self.log(done - 1, {"sparsity/eq8": value})
+
+    def __call__(self, done: int) -> bool:
+        cfg = self.cfg
+        if cfg.learning_curve_every > 0 and done % cfg.learning_curve_every == 0 \
+                and done < cfg.steps_per_task:
+            self.curve_steps.append(done)
+            self.curve.append(self._rollout("eval"))
+        if done % cfg.check_every != 0 or done >= cfg.steps_per_task:
+            return False
+        self._measure_sparsity(done)
+        if cfg.until_success <= 0:
+            return False
+        success = self._rollout("check")
+        self.checks.append((done, success))
+        self.log(done - 1, {"check/success": success})
+        return success >= cfg.until_success
+
+    def finish(self, record: StageRecord, steps: int) -> None:
+        """The stage's record gets its steps, its checks, its curve and its sparsity track."""
+        record.steps_used = steps
+        record.check_steps = [n for n, _ in self.checks]
+        record.check_success = [v for _, v in self.checks]
+        if not self.sparsity or self.sparsity[-1][0] != steps:
+            self._measure_sparsity(steps)
+        record.sparsity_steps = [n for n, _, _ in self.sparsity]
+        record.sparsity = [v for _, v, _ in self.sparsity]
+        record.sparsity_layers = {name: [layers[name] for _, _, layers in self.sparsity]
+                                  for name in self.sparsity[-1][2]}
+        if self.cfg.learning_curve_every > 0:
+            record.curve_steps = self.curve_steps + [steps]
+            record.curve = self.curve + [_mean(record.success[t] for t in self.tasks)]
+
+
+def _mean(values) -> float:
+    values = list(values)
+    return float(np.mean(values)) if values else float("nan")
 
 
 def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> str:
@@ -189,18 +253,23 @@ def _last_finished(checkpoints: Path, k: int, run_key: str) -> int | None:
 
 
 def summary_metrics(cfg: BenchConfig, result: RunResult) -> dict[str, float]:
+    """The run's figures. A stage of several tasks counts as one column, their mean success
+    (`metrics.by_stage`), so plasticity and the rest are per stage as DESIGN.md defines them."""
     tasks = result.tasks
     foundation = [tasks.index(t) for t in cfg.foundation_tasks]
-    stream = [tasks.index(t) for t in cfg.stream_tasks]
-    core: CoreMetrics = core_metrics(result.success_matrix(), foundation, stream)
-    metrics = core.as_dict()
+    groups = [[tasks.index(t) for t in group] for group in cfg.stream_stages()]
+    R, F, stream = by_stage(result.success_matrix(), foundation, groups)
+    metrics = core_metrics(R, F, stream).as_dict()
     metrics["offline_retention"] = float(offline_retention(result.heldout_matrix(), foundation)[-1])
     S = result.spatial_success_matrix()
     if S is not None:
-        metrics.update(spatial_metrics(S, foundation, stream).as_dict())
+        metrics.update(spatial_metrics(*by_stage(S, foundation, groups)).as_dict())
     if all(s.curve for s in result.stages[1:]):
         curves = [np.array(s.curve) for s in result.stages[1:]]
-        metrics.update(libero_metrics(curves, result.success_matrix(), stream).as_dict())
+        metrics.update(libero_metrics(curves, R, stream).as_dict())
+    metrics.update(paper_metrics(result.success_matrix(), tasks, cfg.foundation_tasks,
+                                 cfg.stream_tasks, cfg.heldout_groups))
+    metrics["stream_steps"] = float(sum(s.steps_used for s in result.stages[1:]))
     for key, value in result.stages[-1].updates.items():
         metrics[f"update_{key}"] = value
     return metrics

@@ -32,16 +32,31 @@ class StageRecord:
     # the spatial probe (empty when off): success from widened initial states, as above
     spatial_success: dict[str, float] = field(default_factory=dict)
     spatial_episodes: dict[str, list[bool]] = field(default_factory=dict)
+    steps_used: int = 0  # optimizer steps this stage took (fewer than planned: until_success)
+    check_steps: list[int] = field(default_factory=list)  # until_success's checks: steps done,
+    check_success: list[float] = field(default_factory=list)  # and the tasks' check success
+    # the paper's sparsity (Eq. 8) against the foundation, during the stage: at these steps, the
+    # share of scalars within delta of their pre-trained value, globally and per layer
+    sparsity_steps: list[int] = field(default_factory=list)
+    sparsity: list[float] = field(default_factory=list)
+    sparsity_layers: dict[str, list[float]] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def stage_name(stage: int, tasks: list[str]) -> str:
+    """What a stage trained on, in records and tables: its task, or for a group of tasks
+    "stage<i>-<n>-tasks" (a valid MLflow key; the tasks themselves are in the config)."""
+    return tasks[0] if len(tasks) == 1 else f"stage{stage}-{len(tasks)}-tasks"
 
 
 def eval_settings(cfg: BenchConfig) -> EvalSettings:
     return EvalSettings(episodes=cfg.eval_episodes, max_episode_steps=cfg.max_episode_steps,
                         n_action_steps=cfg.n_action_steps, cameras=cfg.cameras,
                         image_size=cfg.image_size, envs_per_task=cfg.eval_envs_per_task,
-                        shards=cfg.eval_shards, spatial_episodes=cfg.spatial_episodes)
+                        shards=cfg.eval_shards, spatial_episodes=cfg.spatial_episodes,
+                        check_episodes=cfg.check_episodes if cfg.until_success > 0 else 0)
 
 
 def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: BenchmarkData, seed: int,
@@ -54,14 +69,18 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
     A task-aware method (PackNet) is evaluated group by group inside its `evaluation_view`: the
     foundation tasks together, then each stream task; any other method in one call, as before.
     """
-    tasks = cfg.foundation_tasks + cfg.stream_tasks
+    tasks = cfg.all_tasks()
     rolled = set(tasks if cfg.evaluates_foundation(stage) else cfg.stream_tasks)
     noise_seed = derive_seed(seed, "eval")
     aware = method is not None and method.task_aware_eval
-    groups = [cfg.foundation_tasks] + [[t] for t in cfg.stream_tasks] if aware else [tasks]
+    stream = cfg.stream_stages()
+    names = [stage_name(i, group) for i, group in enumerate(stream, start=1)]
+    groups = [cfg.foundation_tasks] + stream if aware else [tasks]
     results, spatial, heldout = {}, {}, {}
     for group in (g for g in groups if g):
-        view = (method.evaluation_view(policy, group[0], cfg.stream_tasks) if aware
+        # a task-aware view is per stage: the foundation's, or stream stage i's (by its name)
+        view = (method.evaluation_view(policy, names[stream.index(group)] if group in stream
+                                       else group[0], names) if aware
                 else contextlib.nullcontext())
         rollouts = [t for t in group if t in rolled]
         with view:

@@ -6,6 +6,7 @@ import dataclasses
 import math
 import os
 import time
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -25,12 +26,14 @@ class TrainSettings:
     lr: float
     weight_decay: float = 0.0
     grad_clip: float = 1.0
+    betas: tuple[float, float] = (0.9, 0.999)
+    eps: float = 1e-8
 
 
 @dataclass(frozen=True)
 class TrainResult:
     final_loss: float  # mean per-sample loss over the last 10% of steps
-    steps: int
+    steps: int  # the steps taken: fewer than planned when `after_step` stopped the stage
 
 
 StepLogger = Callable[[int, dict[str, float]], None]
@@ -57,7 +60,7 @@ class _NoTimer:
 def train_stage(
     ctx: TaskContext, method: Method, settings: TrainSettings, generator: torch.Generator,
     log: StepLogger | None = None, timer: PhaseTimer | None = None,
-    after_step: Callable[[int], None] | None = None,
+    after_step: Callable[[int], bool | None] | None = None,
 ) -> TrainResult:
     """Fine-tune `ctx.policy` on `ctx.data` for `settings.steps` steps with `method`.
 
@@ -70,6 +73,11 @@ def train_stage(
     The stage trains where the policy's parameters are: off the CPU, the stage's data moves
     there once, batches that a method draws elsewhere (a CPU buffer) follow, and the forward
     and the method's loss run under bf16 autocast. `generator` stays a CPU generator.
+
+    `after_step(steps_done)` runs after every step (learning curves, matched-target checks); a
+    true return ends the stage there. With `log`, every step also logs the share of parameters
+    whose Adam denominator is set by eps rather than by the gradient (`optim/frac_eps_dominated`,
+    sqrt(v_hat) < eps): where a small loss scale makes Adam's step shrink (issue 36).
     """
     policy = ctx.policy
     device = next(policy.parameters()).device
@@ -79,13 +87,15 @@ def train_stage(
     method.before_task(ctx)  # first: a method may freeze parameters here
     params = [p for p in policy.parameters() if p.requires_grad]
     tail = max(1, settings.steps // 10)
-    tail_losses: list[float] = []
+    recent: deque[float] = deque(maxlen=tail)  # the last steps' mean losses (it may stop early)
+    done = 0
     timer = timer if timer is not None else _NoTimer()
     # Only with a core to spare: beside as many intra-op threads as cores, a third thread makes
     # them wait on each other (a default step took 2x as long with two threads on two cores).
     prefetch = method.prefetch_batches and torch.get_num_threads() < (os.cpu_count() or 1)
     with contiguous_parameters(params) as flat, ThreadPoolExecutor(1) as data_thread:
-        optimizer = FlatAdamW(flat, settings.lr, settings.weight_decay, settings.grad_clip)
+        optimizer = FlatAdamW(flat, settings.lr, settings.weight_decay, settings.grad_clip,
+                              settings.betas, settings.eps)
         next_batch: Future | None = None
         for step in range(settings.steps):
             timer.mark("other")
@@ -115,17 +125,15 @@ def train_stage(
             optimizer.step()  # clips, updates, zeroes the gradient
             method.after_step(policy)
             timer.mark("optimizer")
-            in_tail = step >= settings.steps - tail
-            if in_tail or log is not None:
-                mean_loss = per_sample.detach().mean().item()
-                if in_tail:
-                    tail_losses.append(mean_loss)
-                if log is not None:
-                    log(step, {"train/flow_loss": mean_loss, "train/objective": loss.item(),
-                               **stats})
-            if after_step is not None:
-                after_step(step + 1)  # steps done so far, e.g. for learning-curve evaluations
+            mean_loss = per_sample.detach().mean().item()
+            recent.append(mean_loss)
+            if log is not None:
+                log(step, {"train/flow_loss": mean_loss, "train/objective": loss.item(),
+                           "optim/frac_eps_dominated": optimizer.frac_eps_dominated(), **stats})
+            done = step + 1
+            if after_step is not None and after_step(done):
+                break
     method.after_task(ctx)
     policy.eval()
-    final = sum(tail_losses) / len(tail_losses) if tail_losses else math.nan
-    return TrainResult(final_loss=final, steps=settings.steps)
+    final = sum(recent) / len(recent) if recent else math.nan
+    return TrainResult(final_loss=final, steps=done)

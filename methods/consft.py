@@ -1,36 +1,34 @@
-"""Conservative SFT (ConSFT): scale each sample's learning signal by the model's confidence.
+"""Conservative SFT (ConSFT) as the paper defines it: scale each sample's loss by the model's
+confidence, with a temperature annealed over the stage.
 
-The paper's exact formula is not public; this is our reading, with three variants as options of
-one class. l_i is sample i's flow-matching loss, sg() stops the gradient.
+Source: Zhang et al., 2026, "Preserving Foundational Capabilities in Flow-Matching VLAs through
+Conservative SFT" (arXiv 2605.08879 v2): Eq. 5 and 11-12, appendix C.1, table 5. L_i is sample
+i's flow-matching loss (the policy's per-sample loss: a mean over the chunk's steps and action
+dimensions, the paper leaving the reduction open) and sg() stops the gradient.
 
-`clip` (default)
-    w_i  = clip(exp(-(l_i - l_ref) / tau), w_min, 1),   tau = kappa * l_ref
-    loss = mean(sg(w_i) * l_i)
-  - l_ref is the loss at which the model counts as confident: the foundation's own final
-    training loss (a scalar in its checkpoint; `reference=foundation`), or the `quantile` of the
-    per-sample losses on the new task at the stage start (`reference=quantile`).
-  - exp(-(l_i - l_ref)/tau): a sample the model finds surprising (l_i >> l_ref) would produce a
-    large update; it is suppressed exponentially, as a trust region bounds an RL policy step.
-  - tau = kappa * l_ref makes the temperature relative to the loss scale, so kappa means the
-    same on any suite.
-  - w_min: the floor, so that no sample is ignored for ever; a new task's initial loss can be
-    orders of magnitude above l_ref, and without it learning would never start.
-  - the upper clip at 1: a confident sample is never up-weighted above plain SFT.
-  - sg(w_i): the weight is a coefficient, not a path for gradients (as in DFT).
-  As training lowers l_i, weights rise towards 1: the progressive dynamic.
+`paper` (default; App. C.1 as written)
+    loss   = mean(sg(w_i) * L_i)                                                 (Eq. 5)
+    w_i    = max(w_min, exp(-kappa * L_i / tau(t)))
+    rho(t) = (exp(-lambda * min(t/T, 1)^c) - exp(-lambda)) / (1 - exp(-lambda))  (Eq. 11)
+    tau(t) = min(tau_start / max(rho(t), eps), tau_end)                          (Eq. 12)
+  t is the optimizer step within the stage; tau rises from tau_start at t = 0 to tau_end by
+  t = T, after which the objective is close to SFT. eps, which the paper leaves open, is 1e-8:
+  any eps below tau_start / tau_end gives tau_end at t >= T.
 
-`dft`
-    w_i = sg(exp(-l_i / tau)),  loss = mean(w_i * l_i)
-  The flow-matching analogue of dynamic fine-tuning (the token probability becomes exp(-l/tau)).
+`kappa_temp`: the other reading of App. C.1, kappa multiplying the temperature,
+    w_i = max(w_min, exp(-L_i / (kappa * tau(t))))
 
-`ratio`
-    r_i = exp((l_i_old - l_i) / tau),  loss = -mean(min(r_i, clip(r_i, 1 - eps, 1 + eps)))
-  A PPO-style clipped ratio with advantage 1: l_i_old is sample i's loss at the stage start,
-  cached with the same (t, noise) draws that every later step reuses for that sample, so no live
-  reference network is kept. Once a sample's loss has fallen by tau * log(1 + eps) it is past
-  the clip and contributes no gradient.
+`dft`: Eq. 5 at a fixed temperature, w_i = exp(-L_i / tau_fixed) (tau_fixed 1 is the paper's
+  likelihood ratio exp(-L_i) itself): an ablation without the schedule and the floor.
 
-It keeps no copy of the network and no earlier data; it logs its weight statistics each step.
+`ratio`: the trust-region ratio the paper approximates, r_i = exp((L_i_old - L_i) / tau_fixed),
+  loss = -mean(min(r_i, clip(r_i, 1 - clip_eps, 1 + clip_eps))), with L_i_old sample i's loss at
+  the stage start under the same (t, noise) draws that every later step reuses for that sample,
+  so no live reference network is kept. An ablation.
+
+It keeps no copy of the network and no earlier data. Each step it logs tau(t), the mean weight,
+the share of samples at the floor and quantiles of the per-sample loss, so a reader can see
+where tau_start sits against the losses.
 """
 
 from __future__ import annotations
@@ -43,19 +41,34 @@ import torch
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
 
-VARIANTS = ("clip", "dft", "ratio")
-REFERENCES = ("foundation", "quantile")
+VARIANTS = ("paper", "kappa_temp", "dft", "ratio")
+LOSS_QUANTILES = (0.1, 0.5, 0.9)
 
 
 @dataclass
 class ConSFTConfig(MethodConfig):
-    variant: str = "clip"
-    kappa: float = 4.0  # temperature tau = kappa * l_ref (sweep: docs/methods.md)
-    w_min: float = 0.1  # floor on the weight (clip variant)
-    reference: str = "foundation"  # where l_ref comes from
-    quantile: float = 0.5  # with reference=quantile
-    eps: float = 0.2  # ratio variant: PPO clip range
-    reference_samples: int = 2048  # samples used to measure quantile losses at the stage start
+    variant: str = "paper"
+    tau_start: float = 0.003  # tau(0); a per-task setting in the paper (table 5)
+    tau_end: float = 5.0  # tau(t) for t >= T
+    kappa: float = 25.0
+    lam: float = 0.8  # lambda of Eq. 11: the schedule's curvature
+    c: float = 3.5  # the exponent of t/T in Eq. 11
+    w_min: float = 1e-3  # the floor on the weight
+    anneal_steps: int = 2000  # T: steps from tau_start to tau_end; a per-task setting (table 5)
+    eps: float = 1e-8  # the floor on rho(t) in Eq. 12 (left open by the paper)
+    tau_fixed: float = 1.0  # the dft and ratio variants' temperature
+    clip_eps: float = 0.2  # the ratio variant's trust region
+
+
+def annealing(t: int, c: ConSFTConfig) -> float:
+    """rho(t) of Eq. 11: 1 at t = 0, falling to 0 at t = T."""
+    x = min(t / c.anneal_steps, 1.0) ** c.c
+    return (math.exp(-c.lam * x) - math.exp(-c.lam)) / (1 - math.exp(-c.lam))
+
+
+def temperature(t: int, c: ConSFTConfig) -> float:
+    """tau(t) of Eq. 12: tau_start at t = 0, never decreasing, tau_end from t = T on."""
+    return min(c.tau_start / max(annealing(t, c), c.eps), c.tau_end)
 
 
 @register_method
@@ -68,21 +81,15 @@ class ConSFT(Method):
         c = self.config
         if c.variant not in VARIANTS:
             raise ValueError(f"unknown consft variant {c.variant!r}; valid: {', '.join(VARIANTS)}")
-        if c.reference not in REFERENCES:
-            raise ValueError(f"unknown consft reference {c.reference!r}; valid: {', '.join(REFERENCES)}")
-        self.l_ref = float("nan")
+        self.t = 0  # optimizer steps taken in this stage
         self._old_loss: torch.Tensor | None = None  # ratio: [N] per-sample loss at stage start
         self._draws: tuple[torch.Tensor, torch.Tensor] | None = None  # ratio: fixed (noise, t)
 
-    @property
-    def tau(self) -> float:
-        return self.config.kappa * self.l_ref
-
     @torch.no_grad()
     def before_task(self, ctx: TaskContext) -> None:
-        c = self.config
-        g = torch.Generator().manual_seed(ctx.stage)
-        if c.variant == "ratio":
+        self.t = 0
+        if self.config.variant == "ratio":
+            g = torch.Generator().manual_seed(ctx.stage)
             n = len(ctx.data)
             noise = torch.randn(ctx.data.actions.shape, generator=g)
             time = ctx.policy.sample_time(n, g)
@@ -91,13 +98,6 @@ class ConSFT(Method):
                 ctx.policy({**ctx.data.batch(idx), "noise": noise[idx], "time": time[idx]})
                 for idx in torch.arange(n).split(1024)
             ])
-        if c.reference == "foundation":
-            self.l_ref = ctx.foundation_loss
-        else:
-            sample = ctx.data.sample(min(c.reference_samples, len(ctx.data)), g)
-            self.l_ref = torch.quantile(ctx.policy(sample, generator=g), c.quantile).item()
-        if not (self.l_ref > 0 and math.isfinite(self.l_ref)):
-            raise ValueError(f"consft needs a positive reference loss, got {self.l_ref}")
 
     def sample_batch(self, ctx: TaskContext, batch_size: int, generator: torch.Generator) -> dict:
         batch = super().sample_batch(ctx, batch_size, generator)
@@ -107,32 +107,40 @@ class ConSFT(Method):
         return batch
 
     def weights(self, per_sample: torch.Tensor) -> torch.Tensor:
-        """sg(w_i) for the clip and dft variants."""
-        losses = per_sample.detach()
-        if self.config.variant == "clip":
-            return torch.exp(-(losses - self.l_ref) / self.tau).clamp(self.config.w_min, 1.0)
-        return torch.exp(-losses / self.tau)
+        """sg(w_i) at the current step, for the weighted variants (paper, kappa_temp, dft)."""
+        c, losses = self.config, per_sample.detach().float()
+        if c.variant == "dft":
+            return torch.exp(-losses / c.tau_fixed)
+        tau = temperature(self.t, c)
+        scaled = c.kappa * losses / tau if c.variant == "paper" else losses / (c.kappa * tau)
+        return torch.exp(-scaled).clamp_min(c.w_min)
 
     def loss(self, per_sample, batch, policy):
         c = self.config
+        losses = per_sample.detach().float()
+        stats = {f"consft/loss_q{round(q * 100)}": v.item()
+                 for q, v in zip(LOSS_QUANTILES, torch.quantile(losses, torch.tensor(LOSS_QUANTILES)))}
         if c.variant == "ratio":
-            log_ratio = (self._old_loss[batch["index"]] - per_sample) / self.tau
+            log_ratio = (self._old_loss[batch["index"]] - per_sample) / c.tau_fixed
             # min(r, clip(r, 1-eps, 1+eps)) is min(r, 1+eps) for a positive advantage; clamping
             # the log first gives the same value and zero gradient past the clip without ever
             # forming exp(large) = inf, whose backward would be 0 * inf = NaN.
-            objective = torch.exp(log_ratio.clamp(max=math.log1p(c.eps)))
+            objective = torch.exp(log_ratio.clamp(max=math.log1p(c.clip_eps)))
             r = torch.exp(log_ratio.detach())
-            stats = {"consft/ratio_mean": r.mean().item(),
-                     "consft/frac_clipped": (r > 1 + c.eps).float().mean().item(),
-                     "consft/frac_below": (r < 1 - c.eps).float().mean().item()}
+            stats.update({"consft/ratio_mean": r.mean().item(),
+                          "consft/frac_clipped": (r > 1 + c.clip_eps).float().mean().item(),
+                          "consft/frac_below": (r < 1 - c.clip_eps).float().mean().item()})
             return -objective.mean(), stats
         w = self.weights(per_sample)
-        stats = {"consft/weight_mean": w.mean().item(),
-                 "consft/frac_at_floor": (w <= c.w_min * (1 + 1e-6)).float().mean().item()
-                 if c.variant == "clip" else 0.0,
-                 "consft/frac_at_one": (w >= 1 - 1e-6).float().mean().item(),
-                 "consft/l_ref": self.l_ref}
-        return (w * per_sample).mean(), stats
+        stats.update({"consft/weight_mean": w.mean().item(),
+                      "consft/frac_at_floor": (w <= c.w_min).float().mean().item()
+                      if c.variant != "dft" else 0.0})
+        if c.variant != "dft":
+            stats["consft/tau"] = temperature(self.t, c)
+        return (w.to(per_sample.dtype) * per_sample).mean(), stats
+
+    def after_step(self, policy: torch.nn.Module) -> None:
+        self.t += 1
 
     def after_task(self, ctx: TaskContext) -> None:
         self._old_loss, self._draws = None, None  # per-task state: nothing carried over

@@ -23,7 +23,7 @@ def _bench(tmp_path, *args):
     (["stream_tasks=reach-v3"], ["'reach-v3'", "both"]),
     (["GRID=kappa"], ["'kappa'", "key=v1,v2"]),
     (["GRID=eval_episodes=5,10"], ["'eval_episodes'", "separate benchmarks"]),
-    (["METHOD=consft", "variant=clipp"], ["'clipp'", "clip, dft, ratio"]),
+    (["METHOD=consft", "variant=clipp"], ["'clipp'", "paper, kappa_temp, dft, ratio"]),
 ])
 def test_bad_input_is_one_line_and_nonzero(tmp_path, args, expected):
     proc = _bench(tmp_path, *args)

@@ -1,13 +1,9 @@
 """The methods' defining behaviours, each a property that a wrong implementation would break."""
 
-import math
-
-import pytest
 import torch
 
 from harness.datasets import TrainingData
 from methods import TaskContext, get_method, method_names
-from methods.consft import ConSFT, ConSFTConfig
 from methods.er import ERConfig, ExperienceReplay
 from methods.ewc import OnlineEWC, per_sample_fisher
 from methods.l2 import L2Config, L2ToReference
@@ -33,67 +29,6 @@ def _param_grads(policy, loss):
     policy.zero_grad()
     loss.backward()
     return torch.cat([p.grad.flatten() for p in policy.parameters() if p.grad is not None])
-
-
-def test_consft_scales_a_high_loss_samples_gradient_by_its_weight(tiny_policy):
-    batch = make_batch(tiny_policy, b=1)
-    batch["actions"] = batch["actions"] * 5  # far from what the policy predicts: a high loss
-    batch["noise"], batch["time"] = torch.randn(1, 4, 3), torch.tensor([0.5])
-    method = ConSFT(ConSFTConfig(kappa=0.5, w_min=0.01))
-    method.l_ref = 0.8
-    sft_grad = _param_grads(tiny_policy, tiny_policy(batch).mean())
-    per_sample = tiny_policy(batch)
-    loss, stats = method.loss(per_sample, batch, tiny_policy)
-    consft_grad = _param_grads(tiny_policy, loss)
-    value = per_sample.item()
-    expected = min(1.0, max(0.01, math.exp(-(value - 0.8) / (0.5 * 0.8))))
-    assert value > 0.8 and expected < 0.5
-    assert torch.allclose(consft_grad, expected * sft_grad, rtol=1e-4, atol=1e-9)
-    assert stats["consft/weight_mean"] == pytest.approx(expected)
-
-
-def test_consft_weights_reach_one_below_the_reference_and_floor_above():
-    method = ConSFT(ConSFTConfig(kappa=0.25, w_min=0.05))
-    method.l_ref = 0.2
-    w = method.weights(torch.tensor([0.01, 0.2, 0.25, 5.0]))
-    assert w[0] == 1.0 and w[1] == 1.0
-    assert w[2].item() == pytest.approx(math.exp(-0.05 / 0.05))
-    assert w[3].item() == pytest.approx(0.05)
-
-
-def test_consft_dft_weight_is_exp_of_minus_loss_over_tau():
-    method = ConSFT(ConSFTConfig(variant="dft", kappa=2.0))
-    method.l_ref = 0.5
-    assert method.weights(torch.tensor([0.3])).item() == pytest.approx(math.exp(-0.3 / 1.0))
-
-
-def test_consft_ratio_samples_past_the_clip_get_no_gradient():
-    method = ConSFT(ConSFTConfig(variant="ratio", kappa=1.0, eps=0.2))
-    method.l_ref = 0.5  # tau = 0.5
-    method._old_loss = torch.tensor([1.0, 1.0, 1.0])
-    # r = exp((1 - l) / 0.5): l = 0.5 -> r = e > 1.2 (clipped); l = 1.0 -> r = 1; l = 2 -> r < 0.8
-    per_sample = torch.tensor([0.5, 1.0, 2.0], requires_grad=True)
-    loss, stats = method.loss(per_sample, {"index": torch.arange(3)}, None)
-    loss.backward()
-    assert per_sample.grad[0].item() == 0.0
-    assert per_sample.grad[1].item() != 0.0 and per_sample.grad[2].item() != 0.0
-    assert stats["consft/frac_clipped"] == pytest.approx(1 / 3)
-
-
-def test_consft_ratio_caches_losses_with_the_draws_it_reuses(tiny_policy):
-    data = _data(tiny_policy, 16, "t", seed=1)
-    method = ConSFT(ConSFTConfig(variant="ratio"))
-    ctx = _ctx(tiny_policy, data)
-    method.before_task(ctx)
-    batch = method.sample_batch(ctx, 8, torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        again = tiny_policy(batch)
-    assert torch.allclose(again, method._old_loss[batch["index"]], atol=1e-6)  # r = 1 at start
-
-
-def test_consft_rejects_an_unknown_variant():
-    with pytest.raises(ValueError, match="'clipp'.*clip, dft, ratio"):
-        ConSFT(ConSFTConfig(variant="clipp"))
 
 
 def test_ewc_fisher_matches_an_explicit_per_sample_loop(tiny_policy):
@@ -166,14 +101,3 @@ def test_er_batches_hold_the_configured_mix(tiny_policy):
     assert from_old == 16 and len(batch["actions"]) == 64
     method.after_task(_ctx(tiny_policy, new, stage=1))
     assert len(method.buffer) == 40 and method.buffer.task_names == ["old", "new"]
-
-
-def test_consft_ratio_stays_finite_when_the_loss_falls_far_below_its_start():
-    method = ConSFT(ConSFTConfig(variant="ratio", kappa=1.0, eps=0.2))
-    method.l_ref = 0.05  # (old - l) / tau = 74: exp would overflow float32
-    method._old_loss = torch.tensor([3.8, 0.5])
-    per_sample = torch.tensor([0.1, 0.6], requires_grad=True)  # r = exp(74) and exp(-2)
-    loss, _ = method.loss(per_sample, {"index": torch.arange(2)}, None)
-    loss.backward()
-    assert torch.isfinite(loss) and torch.isfinite(per_sample.grad).all()
-    assert per_sample.grad[0].item() == 0.0 and per_sample.grad[1].item() != 0.0
