@@ -325,7 +325,7 @@ class Evaluator:
 
     def evaluate(self, policy, tasks: list[str], instructions: dict[str, np.ndarray],
                  noise_seed: int, split: str = "eval") -> dict[str, TaskEvaluation]:
-        """Per task, its episodes of `split`: "eval", or "spatial" (the spatial probe)."""
+        """Per task, its episodes of `split`: "eval", "spatial" (the spatial probe) or "check"."""
         episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes_of(split),
                                        self.settings.max_episode_steps, split)
         layout = self.layout(policy)
