@@ -37,13 +37,17 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait_for(check, what: str, timeout: float, every: float = 0.01, log=()):
-    """`check()` once it is true; a hang guard (the timeout is no measure of speed)."""
+def _wait_for(check, what: str, timeout: float, every: float = 0.01, command=None, log=()):
+    """`check()` once it is true, failing at once if `command` (a process) ends first; the
+    timeout is a hang guard, no measure of speed."""
     end = time.time() + timeout
     while time.time() < end:
         found = check()
         if found:
             return found
+        if command is not None and command.poll() is not None:
+            raise AssertionError(f"the command ended (exit {command.returncode}) before "
+                                 f"{what}:\n" + "".join(list(log)[-40:]))
         time.sleep(every)
     raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}:\n"
                          + "".join(list(log)[-40:]))
@@ -186,10 +190,10 @@ def test_worker_node_killed_mid_job_is_retried_on_the_head_and_resumes(tmp_path,
             # a job runs on the worker; once its stage-1 checkpoint is written, pause it (so
             # the kill lands mid-job, whatever the timing), then kill the worker node
             pid, label, seed = _wait_for(lambda: _running_job(worker), "a job on the worker",
-                                         timeout=400, every=0.2, log=lines)
+                                         timeout=400, every=0.2, command=proc, log=lines)
             stages = shared / "results" / BENCHMARK / label / f"seed{seed}" / "stages"
             _wait_for((stages / "stage_1.pt").exists, "its stage-1 checkpoint", timeout=300,
-                      log=lines)
+                      command=proc, log=lines)
             os.kill(pid, signal.SIGSTOP)
             assert not (stages / "stage_2.pt").exists(), "the job ended before it was paused"
             first = (stages / "stage_1.pt").stat()
