@@ -21,6 +21,7 @@ from multiprocessing import get_context
 
 from harness.config import BenchConfig
 from harness.errors import USER_ERRORS
+from harness.jobs import with_absolute_paths
 
 RAY_RETRIES = 3  # attempts after a lost worker (a Python exception is not retried)
 
@@ -117,6 +118,7 @@ class RayExecutor:
         from ray.exceptions import RayTaskError
 
         ray = self.ray
+        remote = ray.remote(fn)
         queue = list(enumerate(jobs))
         running: dict = {}
         limit = self.max_in_flight or len(jobs)
@@ -124,9 +126,9 @@ class RayExecutor:
             while queue or running:
                 while queue and len(running) < limit:
                     i, job = queue.pop(0)
-                    task = ray.remote(fn).options(num_cpus=job.cpus, num_gpus=0,
-                                                  max_retries=RAY_RETRIES, name=job.label)
-                    running[task.remote(job)] = i
+                    task = remote.options(num_cpus=job.cpus, num_gpus=0, max_retries=RAY_RETRIES,
+                                          name=f"{job.label} seed {job.seed}")
+                    running[task.remote(with_absolute_paths(job))] = i
                 done, _ = ray.wait(list(running), num_returns=1)
                 i = running.pop(done[0])
                 try:

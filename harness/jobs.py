@@ -13,8 +13,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -41,9 +42,7 @@ class FoundationJob:
     tracking: Tracking
     eval_workers: int = 1
 
-    @property
-    def label(self) -> str:
-        return f"foundation seed {self.seed}"
+    label = "foundation"
 
     @property
     def cpus(self) -> int:
@@ -69,6 +68,16 @@ class Job:
     def cpus(self) -> int:
         """Cores it keeps busy: training threads, then its evaluation processes."""
         return max(self.cfg.torch_threads, self.eval_workers)
+
+
+def with_absolute_paths(job: Job | FoundationJob) -> Job | FoundationJob:
+    """The job with its folders made absolute here. Why: a Ray worker starts in the folder its
+    node's `ray start` ran in, not the driver's, so a relative `results_dir=results` would write
+    each node's share of the results somewhere else."""
+    cfg = job.cfg
+    folders = {k: os.path.abspath(v) for k in ("results_dir", "cache_dir", "demos_dir")
+               if (v := getattr(cfg, k))}
+    return replace(job, cfg=replace(cfg, **folders))
 
 
 def job_key(run_key: str, seed: int, label: str) -> str:
