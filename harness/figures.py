@@ -50,10 +50,10 @@ def save(fig: Figure, path: Path) -> None:
 
 
 def success_matrix(path: Path, R: np.ndarray, tasks: list[str], stage_names: list[str],
-                   n_foundation: int, title: str, outline_trained: bool = False) -> None:
+                   n_foundation: int, title: str, trained: list[int] | None = None) -> None:
     """Stages (rows) by tasks (columns), foundation tasks left of the red line; NaN cells (never
-    evaluated) grey. With `outline_trained`, stage i's own stream task is outlined (that cell is
-    its plasticity term)."""
+    evaluated) grey. With `trained` (stream tasks per stage, in stream order), stage i's own
+    stream tasks are outlined together (their mean is its plasticity term)."""
     from matplotlib import colormaps
     from matplotlib.patches import Rectangle
 
@@ -68,10 +68,12 @@ def success_matrix(path: Path, R: np.ndarray, tasks: list[str], stage_names: lis
     for (i, j), v in np.ndenumerate(R):
         ax.text(j, i, "n/a" if np.isnan(v) else f"{v:.2f}", ha="center", va="center",
                 fontsize=FONT_PT, color="white" if np.isnan(v) or v < 0.6 else "black")
-    if outline_trained:
-        for i in range(1, len(R)):
-            ax.add_patch(Rectangle((n_foundation + i - 1.5, i - 0.5), 1, 1, fill=False,
+    if trained:
+        first = n_foundation
+        for i, size in enumerate(trained, start=1):
+            ax.add_patch(Rectangle((first - 0.5, i - 0.5), size, 1, fill=False,
                                    edgecolor="white", linewidth=1.5))
+            first += size
     ax.axvline(n_foundation - 0.5, color="red", linewidth=2)
     ax.set_xticks(range(len(tasks)), xlabels, rotation=90, fontsize=FONT_PT)
     ax.set_yticks(range(len(R)), ylabels, fontsize=FONT_PT)

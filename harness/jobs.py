@@ -205,6 +205,11 @@ def stage_metrics(cfg: BenchConfig, record) -> dict[str, float]:
     m.update({f"spatial_success/{t}": v for t, v in record.spatial_success.items()})
     m["foundation_success"] = foundation_success(cfg, record)
     m["stage_train_loss"] = record.train_loss
+    if record.stage > 0 and record.steps_used > 0:  # not the foundation's, nor a stage record
+        # from before steps were counted; fewer than steps_per_task: until_success stopped it
+        m["stage_steps"] = record.steps_used
+    if record.check_success:  # until_success's last check: the success the stage stopped at
+        m["stage_check_success"] = record.check_success[-1]
     return m
 
 

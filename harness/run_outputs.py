@@ -35,6 +35,15 @@ def rows_csv(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
+def sparsity_progress_csv(stages) -> str:
+    """The paper's Eq. 8 per layer during training (its figure 1): one row per stage, step done
+    in that stage and layer; header only when no stage measured it (stage 0 never does)."""
+    rows = [{"stage": s.stage, "step": step, "layer": layer, "eq8": f"{values[i]:.6g}"}
+            for s in stages for i, step in enumerate(s.sparsity_steps)
+            for layer, values in s.sparsity_layers.items()]
+    return rows_csv(rows) or "stage,step,layer,eq8\n"
+
+
 def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, Path]:
     """Write a run's files atomically; returns name -> path."""
     out = result.run_dir
@@ -47,11 +56,13 @@ def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, P
         "heatmap": out / "success_matrix.png",
         "heldout_loss": out / "heldout_loss.csv",
         "updates_per_layer": out / "updates_per_layer.csv",
+        "sparsity_progress": out / "sparsity_progress.csv",
     }
     write_text(paths["success_matrix"], success_matrix_csv(result.tasks, stage_tasks, R))
     write_text(paths["heldout_loss"], success_matrix_csv(result.tasks, stage_tasks,
                                                          result.heldout_matrix()))
     write_text(paths["updates_per_layer"], rows_csv(result.layer_rows))
+    write_text(paths["sparsity_progress"], sparsity_progress_csv(result.stages))
     S, spatial_path = result.spatial_success_matrix(), out / "spatial_success_matrix.csv"
     if S is not None:  # the spatial probe's, when it is on
         paths["spatial_success_matrix"] = spatial_path
@@ -60,7 +71,9 @@ def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, P
         spatial_path.unlink(missing_ok=True)
     stages = [{"stage": s.stage, "trained_on": s.task, "train_loss": s.train_loss,
                "updates": s.updates, "updates_stage_over_stage": s.updates_stage,
-               "curve_steps": s.curve_steps, "curve": s.curve} for s in result.stages]
+               "curve_steps": s.curve_steps, "curve": s.curve, "steps_used": s.steps_used,
+               "check_steps": s.check_steps, "check_success": s.check_success,
+               "sparsity_steps": s.sparsity_steps, "sparsity": s.sparsity} for s in result.stages]
     write_text(paths["metrics"], json.dumps({"method": result.method, "seed": result.seed,
                                               "metrics": result.metrics, "stages": stages},
                                              indent=2, sort_keys=True, default=float) + "\n")

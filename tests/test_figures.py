@@ -66,14 +66,16 @@ def test_a_success_matrix_shows_every_label_whole(drawn, bench):
     R = np.random.default_rng(0).random((len(cfg.stream_tasks) + 1, len(tasks)))
     R[0, len(cfg.foundation_tasks):] = np.nan
     figures.success_matrix(None, R, tasks, ["foundation", *cfg.stream_tasks],
-                           len(cfg.foundation_tasks), f"{bench}: sft, seed 0", outline_trained=True)
+                           len(cfg.foundation_tasks), f"{bench}: sft, seed 0",
+                           trained=[1] * len(cfg.stream_tasks))
     assert_readable(drawn[0])
 
 
 def test_the_foundation_curves_show_every_stage_name_whole(drawn):
     cfg = load_benchmark("libero-broad")
     stages = len(cfg.stream_tasks) + 1
-    summary = SimpleNamespace(label="sft", stream_tasks=cfg.stream_tasks,  # what the figure reads
+    summary = SimpleNamespace(label="sft", stages=[[t] for t in cfg.stream_tasks],  # what the
+                              stage_names=["foundation", *cfg.stream_tasks],  # figure reads
                               foundation_by_stage=[Interval(0.5, 0.4, 0.6, 3)] * stages)
     plots.foundation_curves(None, [summary], "libero-broad")
     assert_readable(drawn[0])

@@ -64,8 +64,9 @@ def log_child(client, exp_id: str, parent: str, method: str, seed: int, tmp) -> 
     params = {"config.name": EXPERIMENT, "config.foundation_tasks": repr(FOUNDATION),
               "config.stream_tasks": repr(STREAM), "config.lr": "0.0003", "config.seed": str(seed),
               "config.method": method, "method": method, "seed": str(seed), "git_commit": "abc123"}
-    if method == "consft":
-        params["method.kappa"] = "0.5"
+    if method == "consft":  # the paper's ConSFT logs its schedule (methods/consft.py)
+        params.update({"method.variant": "paper", "method.kappa": "25.0",
+                       "method.tau_start": "0.003"})
     client.log_batch(run_id, params=[Param(k, v) for k, v in sorted(params.items())])
     R = success_matrix(method, seed)
     tasks = FOUNDATION + STREAM
@@ -208,9 +209,11 @@ def test_unknown_experiment_is_one_line_error(store):
 def fake_run(method, seed, lr="0.0003", sweep_point="", retention=0.5, plasticity=0.5, start=0):
     from harness.report.runs import RunRecord
 
+    params = {"config.lr": lr, "config.name": EXPERIMENT}
+    if method == "consft":  # the paper's reading: it logs the schedule's tau_start
+        params["method.tau_start"] = "0.003"
     return RunRecord(run_id=f"{method}{lr}{sweep_point}{seed}{start}", method=method, seed=seed,
-                     sweep_point=sweep_point, start_time=start,
-                     params={"config.lr": lr, "config.name": EXPERIMENT},
+                     sweep_point=sweep_point, start_time=start, params=params,
                      metrics={"retention": retention, "plasticity": plasticity},
                      foundation_tasks=FOUNDATION, stream_tasks=STREAM,
                      success=success_matrix("sft", seed), layers=[])

@@ -7,14 +7,15 @@ computed once.
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from harness.bootstrap import Interval, bootstrap_ci
 from harness.errors import RetainError
 from harness.report.groups import Row
-from harness.report.runs import RunRecord
+from harness.report.runs import SERIES_KEYS, RunRecord
 
 
 @dataclass(frozen=True)
@@ -26,6 +27,8 @@ class Metric:
     higher_is_better: bool
     note: str  # one line for the report's legend
     optional: bool = False  # shown only when some run logged it (FWT/NBT/AUC need learning curves)
+    ranked: bool = True  # False: a fact about the run, not a score (steps used): no best, no arrow
+    digits: int = 3  # decimals printed
 
 
 METRICS = [
@@ -67,12 +70,29 @@ METRICS = [
     Metric("spatial_plasticity", "spatial plasticity", True,
            "spatial probe: mean success from widened initial states on each stream task right "
            "after its own stage", optional=True),
+    Metric("stream_steps", "steps used", False,
+           "optimizer steps over all stream stages; fewer than planned where `until_success` "
+           "stopped a stage at its check", optional=True, ranked=False, digits=1),
+    Metric("update_eq8_sparsity", "Eq. 8 sparsity", True,
+           "the ConSFT paper's Eq. 8: share of scalars with |theta_k - theta_0| / |theta_0| "
+           "< 1e-3", optional=True),
 ]
+CHECK_SUCCESS = "check_success"  # derived per run: mean over stages of `stage_check_success`
 OPTIONAL_NOTES = {
     "fwt": "FWT, NBT and AUC (LIBERO) appear when runs log learning-curve evaluations.",
     "spatial_retention": "The spatial columns appear when runs evaluate the spatial probe "
                          "(`spatial_episodes` > 0).",
+    "stream_steps": "Steps used and Eq. 8 sparsity appear for runs that log them (issue 36 on).",
 }
+
+
+def run_value(run: RunRecord, key: str) -> float:
+    """A run's value of a column: its final metric, or for `check_success` the mean over its
+    stages of the success at each stage's last `until_success` check (NaN where it was off)."""
+    if key == CHECK_SUCCESS:
+        checked = [v for v in run.stage_check_success if not math.isnan(v)]
+        return float(np.mean(checked)) if checked else math.nan
+    return run.metrics.get(key, math.nan)
 
 
 @dataclass(frozen=True)
@@ -81,6 +101,20 @@ class UpdateHistogram:
 
     bins: list[str]  # bin labels, smallest change first
     fractions: np.ndarray  # mean over seeds; sums to 1
+
+
+@dataclass(frozen=True)
+class SeriesSummary:
+    """A per-step metric of a row over its seeds (runs.StepSeries): at each step the mean and
+    the range (min, max) of the seeds that logged it there (a seed whose stage stopped early
+    has no later steps in that stage)."""
+
+    step: np.ndarray
+    stage: np.ndarray
+    mean: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    n: int  # seeds that logged it
 
 
 @dataclass(frozen=True)
@@ -93,37 +127,64 @@ class RowSummary:
     foundation_by_stage: list[Interval]  # foundation success per stage, mean and CI over seeds
     updates: UpdateHistogram | None
     layer_relative_l2: dict[str, float]  # layer -> relative L2 of theta_k - theta_0, mean over seeds
+    stages: list[list[str]] = field(default_factory=list)  # stream tasks of each stage
+    series: dict[str, SeriesSummary] = field(default_factory=dict)  # runs.SERIES_KEYS logged
 
     @property
     def label(self) -> str:
         return self.row.label
+
+    @property
+    def stage_names(self) -> list[str]:
+        return self.row.runs[0].stage_names
 
 
 def shown_metrics(summaries: list[RowSummary]) -> list[Metric]:
     return [m for m in METRICS if not m.optional or any(s.cells[m.key].n for s in summaries)]
 
 
-def summarize(row: Row) -> RowSummary:
+def summarize(row: Row, extra: list[str] = ()) -> RowSummary:
+    """The row's statistics over its seeds: every main-table metric, and the `extra` column
+    keys (the paper table's) as well."""
     runs = row.runs
     first = runs[0]
     for run in runs[1:]:
-        if run.tasks != first.tasks:
-            raise RetainError(f"runs of {row.label} evaluate different tasks ({first.run_id}: "
-                              f"{first.tasks}; {run.run_id}: {run.tasks}); report them apart")
+        if run.tasks != first.tasks or run.stages != first.stages:
+            raise RetainError(f"runs of {row.label} evaluate different tasks or stages "
+                              f"({first.run_id}: {first.stages}; {run.run_id}: {run.stages}); "
+                              "report them apart")
     stack = np.stack([r.success for r in runs])
     n_f = len(first.foundation_tasks)
     per_stage = stack[:, :, :n_f].mean(axis=2)  # [seed, stage]
     return RowSummary(
         row=row,
-        cells={m.key: bootstrap_ci([r.metrics.get(m.key, float("nan")) for r in runs])
-               for m in METRICS},
+        cells={key: bootstrap_ci([run_value(r, key) for r in runs])
+               for key in dict.fromkeys([*(m.key for m in METRICS), *extra])},
         foundation_tasks=first.foundation_tasks,
         stream_tasks=first.stream_tasks,
         success_mean=_nanmean(stack),
         foundation_by_stage=[bootstrap_ci(per_stage[:, i]) for i in range(per_stage.shape[1])],
         updates=_update_histogram(runs),
         layer_relative_l2=_layer_relative_l2(runs),
+        stages=first.stages,
+        series={key: summary for key in SERIES_KEYS
+                if (summary := _series_summary(runs, key)) is not None},
     )
+
+
+def _series_summary(runs: list[RunRecord], key: str) -> SeriesSummary | None:
+    logged = [r.series[key] for r in runs if key in r.series and len(r.series[key].step)]
+    if not logged:
+        return None
+    steps = np.unique(np.concatenate([s.step for s in logged]))
+    table = np.full((len(logged), len(steps)), np.nan)
+    stage = np.zeros(len(steps), dtype=np.int64)
+    for i, s in enumerate(logged):
+        at = np.searchsorted(steps, s.step)
+        table[i, at], stage[at] = s.value, s.stage
+    # every step has a value from at least one seed, so nanmin/nanmax never see an empty column
+    return SeriesSummary(steps, stage, _nanmean(table), np.nanmin(table, axis=0),
+                         np.nanmax(table, axis=0), len(logged))
 
 
 def _nanmean(stack: np.ndarray) -> np.ndarray:

@@ -17,9 +17,17 @@ from harness.bootstrap import RESAMPLES
 from harness.errors import RetainError
 from harness.report import plots
 from harness.report.aggregate import OPTIONAL_NOTES, RowSummary, shown_metrics, summarize
-from harness.report.groups import build_rows
+from harness.report.groups import ABSTRACT_ONLY, build_rows
+from harness.report.paper import PaperTable, paper_columns, paper_table
 from harness.report.runs import experiment_id, load_runs, open_client
-from harness.report.table import arrow, csv_table, latex_table, markdown_table
+from harness.report.table import (
+    csv_table,
+    heading,
+    latex_table,
+    markdown_table,
+    paper_csv,
+    paper_markdown,
+)
 from harness.tracking import tracking_uri
 
 OWNED = (".md", ".csv", ".tex", ".png")  # the kinds of file a build writes into the report folder
@@ -44,15 +52,19 @@ def build_report(settings: ReportSettings) -> list[Path]:
         raise RetainError(f"experiment {settings.experiment!r} at {uri} has no finished "
                           "(method, seed) runs yet; run `make bench` first")
     rows, superseded = build_rows(runs)
-    summaries = [summarize(row) for row in rows]
-    files = write_report(settings.out_dir, summaries, settings.experiment, superseded)
+    columns = paper_columns([run for row in rows for run in row.runs])
+    summaries = [summarize(row, [m.key for m in columns]) for row in rows]
+    paper = paper_table(rows, columns) if columns else None
+    files = write_report(settings.out_dir, summaries, settings.experiment, superseded, paper)
     if settings.log_run:
         log_report_run(settings, files, n_runs=sum(len(r.runs) for r in rows))
     return files
 
 
 def write_report(out: Path, summaries: list[RowSummary], benchmark: str,
-                 superseded: int = 0) -> list[Path]:
+                 superseded: int = 0, paper: PaperTable | None = None) -> list[Path]:
+    """Every file of the report; the paper table and the per-step figures only where runs
+    logged their data."""
     out.mkdir(parents=True, exist_ok=True)
     figures = {
         "foundation_success.png": plots.foundation_curves,
@@ -62,6 +74,10 @@ def write_report(out: Path, summaries: list[RowSummary], benchmark: str,
     }
     if any(s.cells["spatial_retention"].n for s in summaries):
         figures["spatial_vs_retention.png"] = plots.spatial_retention
+    if plots.has_series(summaries, "sparsity/"):
+        figures["sparsity_progress.png"] = plots.sparsity_progress
+    if plots.has_series(summaries, "consft/"):
+        figures["consft_weights.png"] = plots.consft_weights
     written = []
     for name, draw in figures.items():
         draw(out / name, summaries, benchmark)
@@ -71,10 +87,14 @@ def write_report(out: Path, summaries: list[RowSummary], benchmark: str,
         plots.success_heatmap(out / heatmaps[s.label], s, benchmark)
         written.append(out / heatmaps[s.label])
     texts = {
-        "summary.md": summary_markdown(summaries, benchmark, superseded, list(figures), heatmaps),
+        "summary.md": summary_markdown(summaries, benchmark, superseded, list(figures), heatmaps,
+                                       paper is not None),
         "summary.csv": csv_table(summaries),
         "summary.tex": latex_table(summaries),
     }
+    if paper is not None:
+        texts["paper_table.md"] = paper_table_markdown(paper, summaries, benchmark)
+        texts["paper_table.csv"] = paper_csv(paper, summaries)
     for name, text in texts.items():
         write_text(out / name, text)
         written.append(out / name)
@@ -89,14 +109,12 @@ def slug(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9.-]+", "_", label).strip("_")
 
 
-def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: int,
-                     figures: list[str], heatmaps: dict[str, str]) -> str:
+def _header(summaries: list[RowSummary], benchmark: str) -> list[str]:
+    """Which runs, seeds and commits; how to read a cell."""
     runs = [r for s in summaries for r in s.row.runs]
     seeds = sorted({r.seed for r in runs})
     commits = sorted({c for r in runs for c in r.commits or ("unknown",)})
-    lines = [
-        f"# {benchmark}: comparison of fine-tuning methods",
-        "",
+    return [
         (f"{len(runs)} finished runs from the MLflow experiment `{benchmark}`; seeds "
          f"{', '.join(map(str, seeds))}; git commit{'s' if len(commits) > 1 else ''} "
          f"{', '.join(f'`{c}`' for c in commits)}."),
@@ -107,8 +125,11 @@ def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: in
          "`method[setting]` rows are sweep points or runs whose settings differ from the "
          "method's other runs."),
         "",
-        markdown_table(summaries),
     ]
+
+
+def _row_notes(summaries: list[RowSummary], superseded: int) -> list[str]:
+    """Rows to read with care: missing seeds, superseded runs, an earlier reading of ConSFT."""
     notes = [f"- **{s.label}** lacks seed{'s' if len(s.row.missing_seeds) > 1 else ''} "
              f"{', '.join(map(str, s.row.missing_seeds))} that other rows have: its cells average "
              f"its {len(s.row.runs)} seeds only, so compare it with care."
@@ -116,8 +137,24 @@ def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: in
     if superseded:
         notes.append(f"- {superseded} older run(s) of a (method, seed) that was run again were "
                      "left out; the newest run counts.")
-    if notes:
-        lines += ["Notes:", "", *notes, ""]
+    if any(s.row.abstract_only for s in summaries):
+        notes.append(f"- Rows ending in \"{ABSTRACT_ONLY.strip()}\" are ConSFT as Retain read it "
+                     "from the paper's abstract alone (the `clip` weighting relative to a "
+                     "reference loss l_ref), run before Retain implemented the paper's objective "
+                     "(Eq. 5, 11-12; docs/methods.md). They are not the paper's method.")
+    return ["Notes:", "", *notes, ""] if notes else []
+
+
+def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: int,
+                     figures: list[str], heatmaps: dict[str, str],
+                     paper_table: bool = False) -> str:
+    lines = [f"# {benchmark}: comparison of fine-tuning methods", "",
+             *_header(summaries, benchmark), markdown_table(summaries)]
+    lines += _row_notes(summaries, superseded)
+    if paper_table:
+        lines += ["The ConSFT paper's table-2 columns (base, target, each held-out suite, "
+                  "held-out average, steps used, check success): [paper_table.md](paper_table.md).",
+                  ""]
     lines += ["## Columns", ""]
     lines.append("- needs: what a method uses beyond the current task's data, so that like is "
                  "compared with like: past data (samples of earlier tasks: a replay buffer, a "
@@ -125,7 +162,7 @@ def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: in
                  "in training; stored weights, as L2, EWC, MAS and merge keep, are not one), task "
                  "identity at evaluation (the policy must be told which task it acts on); none: "
                  "the current task's data alone.")
-    lines += [f"- {m.title} {arrow(m)}: {m.note}." for m in shown_metrics(summaries)]
+    lines += [f"- {heading(m)}: {m.note}." for m in shown_metrics(summaries)]
     shown = {m.key for m in shown_metrics(summaries)}
     lines += [f"- {note}" for key, note in OPTIONAL_NOTES.items() if key not in shown]
     lines += ["", "## Figures", ""]
@@ -134,6 +171,26 @@ def summary_markdown(summaries: list[RowSummary], benchmark: str, superseded: in
     lines += [f"- {label}: ![{label}]({name})" for label, name in heatmaps.items()]
     lines += ["", "How to read each table and plot: `docs/reports.md`.", ""]
     return "\n".join(lines)
+
+
+def paper_table_markdown(paper: PaperTable, summaries: list[RowSummary], benchmark: str) -> str:
+    """The ConSFT paper's table 2 shape (harness/report/paper.py), with its legend."""
+    lines = [f"# {benchmark}: the ConSFT paper's table-2 columns", "",
+             *_header(summaries, benchmark), paper_markdown(paper, summaries)]
+    lines += _row_notes(summaries, 0)
+    lines += ["## Columns", "",
+              f"- {BASE_ROW_NOTE}"]
+    if paper.differing_seeds:
+        lines.append(f"- The runs of seed{'s' * (len(paper.differing_seeds) > 1)} "
+                     f"{', '.join(map(str, paper.differing_seeds))} logged different stage-0 "
+                     "values (different foundations); the base row takes their mean.")
+    lines += [f"- {heading(m)}: {m.note}." for m in paper.columns]
+    lines += ["", "How to read it: `docs/reports.md`.", ""]
+    return "\n".join(lines)
+
+
+BASE_ROW_NOTE = ("base (stage 0): the foundation before any stream stage, the same checkpoint "
+                 "for every method of a seed; its values are averaged over the seeds.")
 
 
 def log_report_run(settings: ReportSettings, files: list[Path], n_runs: int) -> str:

@@ -3,7 +3,9 @@
 Why a row is more than a method name: averaging runs made with different settings (two SFT
 learning rates, two ConSFT kappas) would hide exactly what a sweep measures. A run tagged
 `sweep_point` ("kappa=0.1") gets the row "consft[kappa=0.1]"; untagged runs of one method whose
-settings differ get the differing settings in their label ("sft[lr=0.001]").
+settings differ get the differing settings in their label ("sft[lr=0.001]"). ConSFT runs made
+before Retain implemented the paper's objective (issue 36) are labelled as that reading
+("consft (abstract-only reading)"), so they are never taken for the paper's method.
 """
 
 from __future__ import annotations
@@ -18,6 +20,15 @@ from harness.report.runs import RunRecord
 # harness.config: where a run is written, how its rollouts are split), or that name the method
 # and seed themselves
 NOT_SETTINGS = set(NOT_IN_RUN_KEY) | {"method_params", "torch_threads"}
+ABSTRACT_ONLY = " (abstract-only reading)"
+
+
+def abstract_only(run: RunRecord) -> bool:
+    """A consft run of Retain's reading of the paper's abstract alone (the `clip` variant with an
+    l_ref `reference`, and its dft/ratio variants at a temperature kappa * l_ref), not the
+    paper's objective. Every consft run logs all of its config as `method.*` params, and the
+    paper's (every variant) has `tau_start`, which the earlier reading never had."""
+    return run.method == "consft" and "method.tau_start" not in run.params
 
 
 @dataclass(frozen=True)
@@ -29,6 +40,11 @@ class Row:
     sweep_point: str
     runs: list[RunRecord]  # sorted by seed
     missing_seeds: list[int]  # seeds other rows have and this one lacks
+
+    @property
+    def abstract_only(self) -> bool:
+        """ConSFT as Retain read it from the paper's abstract, not as the paper defines it."""
+        return abstract_only(self.runs[0])
 
     @property
     def seeds(self) -> list[int]:
@@ -70,10 +86,12 @@ def settings(run: RunRecord) -> dict[str, str]:
 
 
 def label_of(run: RunRecord, varying: list[str]) -> str:
-    """The sweep point, then the settings that tell this run from others of its method and point."""
+    """The sweep point, then the settings that tell this run from others of its method and
+    point; " (abstract-only reading)" after an earlier reading of ConSFT."""
     s = settings(run)
     extra = ",".join(f"{k}={s.get(k, QUIET_DEFAULTS.get(k, '-'))}" for k in varying)
-    return run_label(run.method, " ".join(part for part in (run.sweep_point, extra) if part))
+    label = run_label(run.method, " ".join(part for part in (run.sweep_point, extra) if part))
+    return label + (ABSTRACT_ONLY if abstract_only(run) else "")
 
 
 def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:
@@ -82,7 +100,7 @@ def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:
     by_label: dict[str, dict[int, RunRecord]] = {}
     superseded = 0
     for run in sorted(runs, key=lambda r: (r.start_time, r.run_id)):  # newest last: it wins
-        label = label_of(run, varying.get((run.method, run.sweep_point), []))
+        label = label_of(run, varying.get(_group(run), []))
         seeds = by_label.setdefault(label, {})
         superseded += run.seed in seeds
         seeds[run.seed] = run
@@ -97,13 +115,20 @@ def build_rows(runs: list[RunRecord]) -> tuple[list[Row], int]:
     return rows, superseded
 
 
-def _varying_settings(runs: list[RunRecord]) -> dict[tuple[str, str], list[str]]:
-    """Per method and sweep point, the settings that differ between its runs (never the point's
-    own, which its runs share): the same point swept at two base settings (GRID="variant=dft"
-    with kappa=1, then with kappa=4) gives two rows, not one run superseding the other."""
-    groups: dict[tuple[str, str], list[dict[str, str]]] = {}
+def _group(run: RunRecord) -> tuple[str, str, bool]:
+    """Runs whose settings are compared for labels: one method, sweep point and reading (the
+    two readings of ConSFT have different settings; the suffix already tells them apart)."""
+    return run.method, run.sweep_point, abstract_only(run)
+
+
+def _varying_settings(runs: list[RunRecord]) -> dict[tuple[str, str, bool], list[str]]:
+    """Per method, sweep point and reading, the settings that differ between its runs (never
+    the point's own, which its runs share): the same point swept at two base settings
+    (GRID="variant=dft" with kappa=1, then with kappa=4) gives two rows, not one run
+    superseding the other."""
+    groups: dict[tuple[str, str, bool], list[dict[str, str]]] = {}
     for run in runs:
-        groups.setdefault((run.method, run.sweep_point), []).append(settings(run))
+        groups.setdefault(_group(run), []).append(settings(run))
     out = {}
     for group, all_settings in groups.items():
         keys = sorted({k for s in all_settings for k in s})

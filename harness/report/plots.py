@@ -13,15 +13,15 @@ from matplotlib.figure import Figure
 
 from harness import figures
 from harness.figures import save
-from harness.report.aggregate import RowSummary
+from harness.report.aggregate import RowSummary, SeriesSummary
 
 
 def success_heatmap(path: Path, s: RowSummary, benchmark: str) -> None:
-    """A row's success matrix, mean over its seeds; each stage's trained task outlined."""
+    """A row's success matrix, mean over its seeds; each stage's trained tasks outlined."""
     figures.success_matrix(path, s.success_mean, s.foundation_tasks + s.stream_tasks,
-                           ["foundation", *s.stream_tasks], len(s.foundation_tasks),
+                           s.stage_names, len(s.foundation_tasks),
                            f"{benchmark}: {s.label}, success rate (mean of {len(s.row.runs)} seeds)",
-                           outline_trained=True)
+                           trained=[len(g) for g in s.stages])
 
 
 def colors(summaries: list[RowSummary]) -> dict[str, tuple]:
@@ -34,9 +34,9 @@ def colors(summaries: list[RowSummary]) -> dict[str, tuple]:
 
 def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
     """Foundation success after each stage: one line per row, its 95% CI band over seeds."""
-    first = summaries[0]
+    longest = max(summaries, key=lambda s: len(s.stages))  # rows of other stages: the most
     ticks = [f"{i}\n{figures.task_label(t, width=16)}"
-             for i, t in enumerate(["foundation", *first.stream_tasks])]
+             for i, t in enumerate(longest.stage_names)]
     tick_w, tick_h = figures.text_size(ticks)
     fig = Figure(figsize=(max(8.0, 3.5 + (tick_w + 0.2) * len(ticks)), 4.0 + tick_h))
     ax = fig.add_subplot()
@@ -50,7 +50,7 @@ def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -
                             color=color[s.label], alpha=0.2)
     ax.set_xticks(range(len(ticks)), ticks, fontsize=figures.FONT_PT)
     ax.set_ylim(-0.02, 1.02)
-    ax.set_xlabel("stage (task trained at that stage)")
+    ax.set_xlabel("stage (what it trained on)")
     ax.set_ylabel("foundation success (mean over foundation tasks)")
     ax.set_title(f"{benchmark}: retention of the foundation tasks (band: 95% CI over seeds)",
                  fontsize=10)
@@ -307,3 +307,127 @@ def spatial_retention(path: Path, summaries: list[RowSummary], benchmark: str) -
     fig.tight_layout()
     label_points(ax, labelled)
     save(fig, path)
+
+
+def _segments(series: SeriesSummary):
+    """(step, mean, low, high) per stream stage: a line per stage, none drawn across stages
+    (ConSFT's schedule restarts; a stage stopped early leaves a gap before the next)."""
+    for stage in np.unique(series.stage):
+        at = series.stage == stage
+        yield series.step[at], series.mean[at], series.low[at], series.high[at]
+
+
+def _stage_starts(ax, rows: list[RowSummary]) -> None:
+    """Dotted lines where stages 2..k start on the planned step axis (stage i at
+    (i - 1) * steps_per_task), from the first row's settings."""
+    run = rows[0].row.runs[0]
+    per_stage = int(run.params.get("config.steps_per_task", 0))
+    for i in range(1, len(run.stages)):
+        ax.axvline(i * per_stage, color="grey", linestyle=":", linewidth=1, zorder=0)
+
+
+def sparsity_progress(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
+    """The ConSFT paper's Eq. 8 sparsity against the training step within the stream (its
+    figure 2): one line per row, the mean over seeds, shaded from the lowest seed to the
+    highest. Draw it only when some row has `sparsity/eq8` (`has_series`)."""
+    rows = [s for s in summaries if "sparsity/eq8" in s.series]
+    fig = Figure(figsize=(10, 5))
+    ax = fig.add_subplot()
+    color = colors(summaries)
+    for s in rows:
+        series = s.series["sparsity/eq8"]
+        marker = "o" if len(series.step) <= 80 else None
+        for j, (x, mean, low, high) in enumerate(_segments(series)):
+            ax.plot(x, mean, marker=marker, markersize=3, color=color[s.label],
+                    label=f"{s.label} ({series.n} seed{'s' * (series.n > 1)})" if j == 0 else None)
+            if series.n > 1:
+                ax.fill_between(x, low, high, color=color[s.label], alpha=0.15, linewidth=0)
+    if rows:
+        _stage_starts(ax, rows)
+    ax.set_xlabel("training step within the stream (stage i starts at (i - 1) x steps_per_task; "
+                  "dotted: stage starts)")
+    ax.set_ylabel("Eq. 8 sparsity: share of scalars\nwith |theta - theta_0| / |theta_0| < 1e-3")
+    ax.set_title(f"{benchmark}: how much of the network stays at the foundation's weights "
+                 "(mean over seeds; band: min to max)", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    fig.tight_layout()
+    save(fig, path)
+
+
+def floor_edge(params: dict[str, str]) -> float | None:
+    """The factor f such that a sample whose loss is below f * tau(t) gets a weight above
+    ConSFT's floor w_min (w = max(w_min, exp(-kappa L / tau)) for `paper`, exp(-L / (kappa
+    tau)) for `kappa_temp`); None for the other variants or settings that have no floor."""
+    try:
+        variant = params.get("method.variant", "paper")
+        kappa, w_min = float(params["method.kappa"]), float(params["method.w_min"])
+    except (KeyError, ValueError):
+        return None
+    if not 0 < w_min < 1 or kappa <= 0 or variant not in ("paper", "kappa_temp"):
+        return None
+    escape = np.log(1 / w_min)  # exp(-x) > w_min  <=>  x < ln(1 / w_min)
+    return float(escape / kappa if variant == "paper" else escape * kappa)
+
+
+def consft_weights(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
+    """ConSFT's weighting over the steps, per consft row (mean over seeds): above, on a log
+    scale, the per-sample losses (median; band 10th to 90th percentile) against tau(t) and the
+    loss below which a sample leaves the floor; below, the mean weight and the share of samples
+    at the floor. Draw it only when some row logged `consft/*` (`has_series`)."""
+    from matplotlib.lines import Line2D
+
+    rows = [s for s in summaries if any(k.startswith("consft/") for k in s.series)]
+    fig = Figure(figsize=(11, 8))
+    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 2])
+    color = colors(summaries)
+    for s in rows:
+        c, series = color[s.label], s.series
+        edge = floor_edge(s.row.runs[0].params)
+        if "consft/loss_q50" in series:
+            for x, mean, _, _ in _segments(series["consft/loss_q50"]):
+                top.plot(x, mean, "-", color=c, linewidth=1)
+        if "consft/loss_q10" in series and "consft/loss_q90" in series:
+            for (x, q10, _, _), (_, q90, _, _) in zip(_segments(series["consft/loss_q10"]),
+                                                       _segments(series["consft/loss_q90"])):
+                top.fill_between(x, q10, q90, color=c, alpha=0.15, linewidth=0)
+        if "consft/tau" in series:
+            for x, tau, _, _ in _segments(series["consft/tau"]):
+                top.plot(x, tau, "--", color=c, linewidth=1.2)
+                if edge is not None:
+                    top.plot(x, edge * tau, ":", color=c, linewidth=1.5)
+        for key, style in (("consft/weight_mean", "-"), ("consft/frac_at_floor", "--")):
+            if key in series:
+                for x, mean, _, _ in _segments(series[key]):
+                    bottom.plot(x, mean, style, color=c, linewidth=1)
+    for ax in (top, bottom):
+        if rows:
+            _stage_starts(ax, rows)
+        ax.grid(alpha=0.3)
+    top.set_yscale("log")
+    top.set_ylabel("per-sample flow-matching loss, tau(t)")
+    bottom.set_ylabel("mean weight, share at the floor")
+    bottom.set_ylim(-0.02, 1.02)
+    bottom.set_xlabel("training step within the stream (stage i starts at (i - 1) x "
+                      "steps_per_task; dotted: stage starts)")
+    top.set_title(f"{benchmark}: ConSFT's temperature against the losses (mean over seeds)",
+                  fontsize=10)
+    grey = "dimgrey"
+    top.legend(handles=[
+        *(Line2D([], [], color=color[s.label], linewidth=3, label=s.label) for s in rows),
+        Line2D([], [], color=grey, label="loss median (band: 10th to 90th percentile)"),
+        Line2D([], [], color=grey, linestyle="--", label="tau(t)"),
+        Line2D([], [], color=grey, linestyle=":",
+               label="floor edge: a loss below it\ngets a weight above w_min")],
+        fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    bottom.legend(handles=[Line2D([], [], color=grey, label="mean weight"),
+                           Line2D([], [], color=grey, linestyle="--",
+                                  label="share of samples at the floor")],
+                  fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    save(fig, path)
+
+
+def has_series(summaries: list[RowSummary], prefix: str) -> bool:
+    """Whether some row logged a per-step metric starting with `prefix` (a figure's data)."""
+    return any(k.startswith(prefix) for s in summaries for k in s.series)

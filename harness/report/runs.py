@@ -10,8 +10,10 @@ from __future__ import annotations
 import ast
 import csv
 import io
+import itertools
+import math
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +22,10 @@ from harness.errors import RetainError
 from harness.tracking import metric_key, quiet_mlflow, run_commits
 
 PARENT_TAG = "mlflow.parentRunId"
+# per-step metrics the figures draw (the paper's Eq. 8 sparsity, ConSFT's weighting), read only
+# from runs that logged them
+SERIES_KEYS = ("sparsity/eq8", "consft/tau", "consft/weight_mean", "consft/frac_at_floor",
+               "consft/loss_q10", "consft/loss_q50", "consft/loss_q90")
 
 
 @dataclass(frozen=True)
@@ -30,6 +36,17 @@ class LayerUpdate:
     numel: int
     relative_l2: float
     frac_changed: dict[float, float]  # rho -> fraction of scalars with |delta| > rho * RMS(theta_0)
+
+
+@dataclass(frozen=True)
+class StepSeries:
+    """A per-step metric of the stream stages. `step` counts the steps from the stream's start
+    as MLflow's step axis does: stage i's steps start at (i - 1) * steps_per_task, whether or
+    not an earlier stage stopped early (`until_success`)."""
+
+    step: np.ndarray  # int: steps done since the stream's start, in that planned schedule
+    stage: np.ndarray  # int: the stream stage (1..k) the step belongs to
+    value: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -49,10 +66,30 @@ class RunRecord:
     layers: list[LayerUpdate]
     needs: str = ""  # the `needs` tag ("past data, reference copy", "none"); "" if not logged
     commits: tuple[str, ...] = ()  # the commits that ran it (more than one if resumed at another)
+    stage_sizes: tuple[int, ...] = ()  # stream tasks per stage; (): one task a stage
+    # per stream stage 1..k, NaN where not logged: the optimizer steps it took, and the success
+    # at its last until_success check
+    stage_steps: tuple[float, ...] = ()
+    stage_check_success: tuple[float, ...] = ()
+    series: dict[str, StepSeries] = field(default_factory=dict)  # SERIES_KEYS it logged
 
     @property
     def tasks(self) -> list[str]:
         return self.foundation_tasks + self.stream_tasks
+
+    @property
+    def stages(self) -> list[list[str]]:
+        """The stream tasks of each stage, in order: one a stage unless grouped."""
+        sizes = self.stage_sizes or (1,) * len(self.stream_tasks)
+        ends = list(itertools.accumulate(sizes))
+        return [self.stream_tasks[end - n:end] for n, end in zip(sizes, ends)]
+
+    @property
+    def stage_names(self) -> list[str]:
+        """"foundation", then what each stage trained on (harness.stages.stage_name)."""
+        from harness.stages import stage_name  # here: harness.stages imports torch (seconds)
+
+        return ["foundation", *(stage_name(i, g) for i, g in enumerate(self.stages, start=1))]
 
 
 def open_client(uri: str):
@@ -99,17 +136,24 @@ def _search_finished(client, exp_id: str) -> list:
 
 
 def _record(client, run) -> RunRecord:
-    params, tags = run.data.params, run.data.tags
-    foundation = _task_list(params, "config.foundation_tasks", run.info.run_id)
-    stream = _task_list(params, "config.stream_tasks", run.info.run_id)
+    params, tags, run_id = run.data.params, run.data.tags, run.info.run_id
+    foundation = _task_list(params, "config.foundation_tasks", run_id)
+    stream = _task_list(params, "config.stream_tasks", run_id)
+    sizes = _stage_sizes(params, len(stream), run_id)
+    k = len(sizes)
+    per_stage = {key: _per_stage(client, run_id, key, k) if key in run.data.metrics
+                 else (math.nan,) * k for key in ("stage_steps", "stage_check_success")}
     return RunRecord(
-        run_id=run.info.run_id, method=tags["method"], seed=int(tags.get("seed", params.get("seed", 0))),
+        run_id=run_id, method=tags["method"], seed=int(tags.get("seed", params.get("seed", 0))),
         sweep_point=tags.get("sweep_point", ""), start_time=run.info.start_time,
         params=dict(params), metrics=dict(run.data.metrics),
         foundation_tasks=foundation, stream_tasks=stream,
-        success=_success_matrix(client, run.info.run_id, foundation + stream, len(stream)),
-        layers=_layer_updates(client, run.info.run_id), needs=tags.get("needs", ""),
-        commits=tuple(run_commits(params, tags)),
+        success=_success_matrix(client, run_id, foundation + stream, k),
+        layers=_layer_updates(client, run_id), needs=tags.get("needs", ""),
+        commits=tuple(run_commits(params, tags)), stage_sizes=tuple(sizes),
+        stage_steps=per_stage["stage_steps"], stage_check_success=per_stage["stage_check_success"],
+        series={key: _series(client, run_id, key, params) for key in SERIES_KEYS
+                if key in run.data.metrics},
     )
 
 
@@ -122,15 +166,52 @@ def _task_list(params: dict[str, str], key: str, run_id: str) -> list[str]:
     return [str(t) for t in value]
 
 
+def _stage_sizes(params: dict[str, str], n_stream: int, run_id: str) -> list[int]:
+    """Stream tasks per stage: `config.stage_sizes`, or one task a stage where it is absent (a
+    run from before stages were grouped) or empty."""
+    text = params.get("config.stage_sizes", "[]")
+    try:
+        sizes = [int(n) for n in ast.literal_eval(text)]
+    except (ValueError, SyntaxError, TypeError):
+        raise RetainError(f"run {run_id} has an unreadable param 'config.stage_sizes': "
+                          f"{text!r}; expected a list of stage sizes") from None
+    if sizes and (min(sizes) < 1 or sum(sizes) != n_stream):
+        raise RetainError(f"run {run_id}: config.stage_sizes {sizes} does not split its "
+                          f"{n_stream} stream tasks into stages")
+    return sizes or [1] * n_stream
+
+
+def _history(client, run_id: str, key: str) -> dict[int, float]:
+    """step -> value of a metric; a resumed run may log a step twice: the later value wins."""
+    history = sorted(client.get_metric_history(run_id, metric_key(key)),
+                     key=lambda m: (m.step, m.timestamp))
+    return {m.step: m.value for m in history}
+
+
+def _per_stage(client, run_id: str, key: str, k: int) -> tuple[float, ...]:
+    """A per-stage metric (step = stage) for stages 1..k; NaN where not logged."""
+    history = _history(client, run_id, key)
+    return tuple(history.get(stage, math.nan) for stage in range(1, k + 1))
+
+
+def _series(client, run_id: str, key: str, params: dict[str, str]) -> StepSeries:
+    """A per-step metric of the stream stages. The trainer logs steps on one axis from the
+    foundation's start: foundation_steps + (stage - 1) * steps_per_task + steps done - 1."""
+    history = _history(client, run_id, key)
+    start = int(params.get("config.foundation_steps", 0))
+    per_stage = max(1, int(params.get("config.steps_per_task", 1)))
+    steps = np.array([s - start for s in history if s >= start], dtype=np.int64)
+    values = np.array([v for s, v in history.items() if s >= start], dtype=np.float64)
+    return StepSeries(step=steps + 1, stage=steps // per_stage + 1, value=values)
+
+
 def _success_matrix(client, run_id: str, tasks: list[str], k: int) -> np.ndarray:
     """R[stage, task] from the `success/<task>` metric histories (step = stage); NaN if absent."""
     R = np.full((k + 1, len(tasks)), np.nan)
     for j, task in enumerate(tasks):
-        history = sorted(client.get_metric_history(run_id, metric_key(f"success/{task}")),
-                         key=lambda m: (m.step, m.timestamp))
-        for m in history:  # a resumed run may log a stage twice: the later value wins
-            if 0 <= m.step <= k:
-                R[m.step, j] = m.value
+        for stage, value in _history(client, run_id, f"success/{task}").items():
+            if 0 <= stage <= k:
+                R[stage, j] = value
     return R
 
 

@@ -1,8 +1,10 @@
-"""The comparison table (rows: method settings, columns: metrics) as Markdown, CSV and LaTeX.
+"""The comparison table (rows: method settings, columns: metrics) as Markdown, CSV and LaTeX,
+and the ConSFT paper's table 2 columns (harness/report/paper.py) as Markdown and CSV.
 
 Each cell is the mean over seeds with its 95% bootstrap interval; the best row of each column is
 marked (bold), by the column's direction. Means are compared as printed (3 decimals), so rows
-that print the same value are marked together.
+that print the same value are marked together. Columns that are facts rather than scores (steps
+used) have no direction and no best.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import math
 
 from harness.bootstrap import Interval
 from harness.report.aggregate import Metric, RowSummary, shown_metrics
+from harness.report.paper import BASE_LABEL, PaperTable
 
 DIGITS = 3
 
@@ -20,46 +23,53 @@ DIGITS = 3
 def best_labels(summaries: list[RowSummary], metric: Metric) -> set[str]:
     """Labels of the rows with the best printed mean in this column; none when every row prints
     the same value (nothing to single out) or no row has data."""
-    values = {s.label: round(s.cells[metric.key].mean, DIGITS) for s in summaries
+    values = {s.label: round(s.cells[metric.key].mean, metric.digits) for s in summaries
               if s.cells[metric.key].n}
-    if len(set(values.values())) < 2:
+    if not metric.ranked or len(set(values.values())) < 2:
         return set()
     best = max(values.values()) if metric.higher_is_better else min(values.values())
     return {label for label, v in values.items() if v == best}
 
 
 def arrow(metric: Metric) -> str:
+    """↑ or ↓ by the column's direction; "" for a column without one."""
+    if not metric.ranked:
+        return ""
     return "↑" if metric.higher_is_better else "↓"
 
 
-def _num(v: float) -> str:
-    return f"{v:.{DIGITS}f}"
+def heading(metric: Metric) -> str:
+    return f"{metric.title} {arrow(metric)}".strip()
 
 
-def cell_text(cell: Interval) -> tuple[str, str]:
+def cell_text(cell: Interval, digits: int = DIGITS) -> tuple[str, str]:
     """(mean, interval) as printed; the interval is "" with one seed, the mean "n/a" with none."""
     if cell.n == 0 or math.isnan(cell.mean):
         return "n/a", ""
     if not cell.has_interval:
-        return _num(cell.mean), ""
-    return _num(cell.mean), f"[{_num(cell.low)}, {_num(cell.high)}]"
+        return f"{cell.mean:.{digits}f}", ""
+    return f"{cell.mean:.{digits}f}", f"[{cell.low:.{digits}f}, {cell.high:.{digits}f}]"
 
 
 def _cells(summary: RowSummary, metrics, best: dict, bold) -> list[tuple[str, str]]:
     """(mean, interval) text per metric, the mean passed through `bold` where it is the best."""
     out = []
     for m in metrics:
-        mean, interval = cell_text(summary.cells[m.key])
+        mean, interval = cell_text(summary.cells[m.key], m.digits)
         out.append((bold(mean) if summary.label in best[m.key] else mean, interval))
     return out
 
 
-def markdown_table(summaries: list[RowSummary]) -> str:
-    metrics = shown_metrics(summaries)
+def markdown_table(summaries: list[RowSummary], metrics: list[Metric] | None = None,
+                   first: list[str] | None = None) -> str:
+    """The rows under the metrics (the main table's by default); `first`, an already formatted
+    row (the paper table's base) above them."""
+    metrics = shown_metrics(summaries) if metrics is None else metrics
     best = {m.key: best_labels(summaries, m) for m in metrics}
-    lines = ["| method | seeds | needs | "
-             + " | ".join(f"{m.title} {arrow(m)}" for m in metrics) + " |",
+    lines = ["| method | seeds | needs | " + " | ".join(heading(m) for m in metrics) + " |",
              "|---|---|---|" + "---|" * len(metrics)]
+    if first is not None:
+        lines.append("| " + " | ".join(first) + " |")
     for s in summaries:
         cells = [f"{mean} {interval}".strip()
                  for mean, interval in _cells(s, metrics, best, lambda v: f"**{v}**")]
@@ -68,9 +78,30 @@ def markdown_table(summaries: list[RowSummary]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def csv_table(summaries: list[RowSummary]) -> str:
+def paper_markdown(table: PaperTable, summaries: list[RowSummary]) -> str:
+    """The paper's table 2 shape: the base row (stage 0; no steps, no check), then each row."""
+    base = [BASE_LABEL, str(len(table.base_seeds)), "-"]
+    for m in table.columns:
+        cell = table.base.get(m.key)
+        base.append(" ".join(cell_text(cell, m.digits)).strip() if cell is not None else "-")
+    return markdown_table(summaries, table.columns, first=base)
+
+
+def paper_csv(table: PaperTable, summaries: list[RowSummary]) -> str:
+    """As csv_table, with the base row first (label "base", no method)."""
+    base = ["base", "", "", "", len(table.base_seeds), ";".join(map(str, table.base_seeds)),
+            "", ""]
+    for m in table.columns:
+        cell = table.base.get(m.key)
+        base += ([_full(cell.mean if cell.n else None), _full(cell.low), _full(cell.high),
+                  cell.n, 0] if cell is not None else ["", "", "", 0, 0])
+    return csv_table(summaries, table.columns, first=base)
+
+
+def csv_table(summaries: list[RowSummary], metrics: list[Metric] | None = None,
+              first: list | None = None) -> str:
     """Machine-readable: full-precision mean, CI bounds and sample count per metric."""
-    metrics = shown_metrics(summaries)
+    metrics = shown_metrics(summaries) if metrics is None else metrics
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     header = ["label", "method", "sweep_point", "lr", "n_seeds", "seeds", "missing_seeds", "needs"]
@@ -78,6 +109,8 @@ def csv_table(summaries: list[RowSummary]) -> str:
         header += [f"{m.key}_mean", f"{m.key}_ci_low", f"{m.key}_ci_high", f"{m.key}_n",
                    f"{m.key}_best"]
     writer.writerow(header)
+    if first is not None:
+        writer.writerow(first)
     best = {m.key: best_labels(summaries, m) for m in metrics}
     for s in summaries:
         row = s.row
@@ -99,9 +132,9 @@ def latex_table(summaries: list[RowSummary]) -> str:
     """A booktabs tabular (needs \\usepackage{booktabs}); the interval in small type."""
     metrics = shown_metrics(summaries)
     best = {m.key: best_labels(summaries, m) for m in metrics}
-    arrows = {"↑": r"$\uparrow$", "↓": r"$\downarrow$"}
+    arrows = {"↑": r" $\uparrow$", "↓": r" $\downarrow$", "": ""}
     lines = [r"\begin{tabular}{lll" + "r" * len(metrics) + "}", r"\toprule",
-             "method & seeds & needs & " + " & ".join(f"{_tex(m.title)} {arrows[arrow(m)]}" for m in metrics)
+             "method & seeds & needs & " + " & ".join(f"{_tex(m.title)}{arrows[arrow(m)]}" for m in metrics)
              + r" \\", r"\midrule"]
     for s in summaries:
         cells = [mean + (rf" {{\scriptsize {interval}}}" if interval else "")
