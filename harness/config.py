@@ -121,6 +121,13 @@ class BenchConfig:
         return dataclasses.asdict(self)
 
 
+def stage_name(stage: int, tasks: list[str]) -> str:
+    """What a stage trained on, in records and tables: its task, or for a group of tasks
+    "stage<i>-<n>-tasks" (a valid MLflow key; the tasks themselves are in the config)."""
+    return tasks[0] if len(tasks) == 1 else f"stage{stage}-{len(tasks)}-tasks"
+
+
+
 # the settings an override or a GRID point sets on the config; any other key is a method's
 BENCH_KEYS = frozenset(f.name for f in fields(BenchConfig)) - {"method_params", "grid"}
 

@@ -177,8 +177,8 @@ def run_job(job: Job, evaluator=None, data=None):
         for record in result.stages:  # stages resumed from checkpoints were not logged yet
             log_stage(record)
         logger.flush()
-        if len(cfg.stream_tasks) not in tracker.logged_steps(child, "retention"):
-            tracker.log_metrics(child, result.metrics, step=len(cfg.stream_tasks))
+        if cfg.num_stages not in tracker.logged_steps(child, "retention"):
+            tracker.log_metrics(child, result.metrics, step=cfg.num_stages)
         # a job resumed at another commit: its files name every commit, as its MLflow run does;
         # the machine is this process's (a Ray worker's, not the driver's), the one that finished
         provenance = {**job.tracking.provenance, "git_commits": tracker.commits(child),

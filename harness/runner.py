@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from harness.config import BenchConfig, run_key_settings, set_field
+from harness.config import BenchConfig, run_key_settings, set_field, stage_name
 from harness.data import BenchmarkData
 from harness.errors import RetainError
 from harness.evaluation import Evaluator
@@ -31,7 +31,6 @@ from harness.stages import (
     evaluate_stage,
     load_checkpoint,
     save_checkpoint,
-    stage_name,
 )
 from harness.trainer import TrainSettings, train_stage
 from harness.updates import paper_sparsity, update_stats

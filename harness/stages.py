@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from harness.atomic import atomic_path
-from harness.config import BenchConfig
+from harness.config import BenchConfig, stage_name
 from harness.data import BenchmarkData
 from harness.evaluation import EvalSettings, Evaluator, heldout_loss
 from harness.seeding import derive_seed
@@ -43,12 +43,6 @@ class StageRecord:
 
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-def stage_name(stage: int, tasks: list[str]) -> str:
-    """What a stage trained on, in records and tables: its task, or for a group of tasks
-    "stage<i>-<n>-tasks" (a valid MLflow key; the tasks themselves are in the config)."""
-    return tasks[0] if len(tasks) == 1 else f"stage{stage}-{len(tasks)}-tasks"
 
 
 def eval_settings(cfg: BenchConfig) -> EvalSettings:

@@ -194,7 +194,7 @@ def stages_done(seed: int, variant: Variant) -> int:
     if not checkpoints.is_dir():
         return 0
     run_key = run_settings_key(cfg, variant.method, foundation_key(cfg, get_suite(cfg.suite), seed))
-    return resumable_stage(checkpoints, len(cfg.stream_tasks), run_key) or 0
+    return resumable_stage(checkpoints, cfg.num_stages, run_key) or 0
 
 
 def describe(study: Study, plans: list[PartPlan]) -> str:
@@ -219,7 +219,7 @@ def describe(study: Study, plans: list[PartPlan]) -> str:
                                                   for label, seeds in finished.items()))
         for s, v in started:
             lines.append(f"    started: {v.label} seed {s}, {stages_done(s, v)} of "
-                         f"{len(v.cfg.stream_tasks)} stages")
+                         f"{v.cfg.num_stages} stages")
     return "\n".join(lines)
 
 

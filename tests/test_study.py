@@ -33,7 +33,7 @@ def test_regimes_parts_expand_to_their_jobs(tmp_path):
         assert [by_label[f"sft{x}"].cfg.lr for x in ("", "[lr=0.0001]", "[lr=3e-05]")] == \
             [3e-4, 1e-4, 3e-5]
         assert by_label["consft[variant=ratio]"].method.config.variant == "ratio"
-        assert by_label["consft"].method.config.variant == "clip"
+        assert by_label["consft"].method.config.variant == "paper"
         assert by_label["er"].cfg.lr == 3e-4 and by_label["er"].method.name == "er"
     pi0 = plan_part(s.parts["mw-broad-6-pi0"], extra)
     assert pi0.experiment == "mw-broad-6-pi0"

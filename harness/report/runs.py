@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.config import stage_name
 from harness.errors import RetainError
 from harness.tracking import metric_key, quiet_mlflow, run_commits
 
@@ -86,8 +87,7 @@ class RunRecord:
 
     @property
     def stage_names(self) -> list[str]:
-        """"foundation", then what each stage trained on (harness.stages.stage_name)."""
-        from harness.stages import stage_name  # here: harness.stages imports torch (seconds)
+        """"foundation", then what each stage trained on (harness.config.stage_name)."""
 
         return ["foundation", *(stage_name(i, g) for i, g in enumerate(self.stages, start=1))]
 
