@@ -13,11 +13,13 @@ import types
 import typing
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import yaml
+from annotated_types import Ge, Gt, MinLen, doc
 
 from harness.errors import RetainError
+from harness.validation import AtMost, check
 
 BENCHMARK_DIR = Path(__file__).parent / "benchmarks"
 PROFILE_BENCHMARKS = {"quick": "mw-quick", "standard": "mw-standard", "tiny": "mw-quick",
@@ -26,53 +28,62 @@ PROFILE_BENCHMARKS = {"quick": "mw-quick", "standard": "mw-standard", "tiny": "m
 
 @dataclass
 class BenchConfig:
-    name: str
-    suite: str
-    foundation_tasks: list[str]
-    stream_tasks: list[str]
-    demos_per_task: int = 50
-    heldout_demos_per_task: int = 5
-    eval_episodes: int = 20
-    spatial_episodes: int = 0  # per task and stage, from widened initial states; 0: probe off
+    name: Annotated[str, MinLen(1)]
+    suite: Annotated[str, MinLen(1)]  # a registered suite (plan checks the name)
+    foundation_tasks: Annotated[list[str], MinLen(1)]
+    stream_tasks: Annotated[list[str], MinLen(1)]
+    demos_per_task: Annotated[int, Ge(1)] = 50
+    heldout_demos_per_task: Annotated[int, Ge(1)] = 5
+    eval_episodes: Annotated[int, Ge(1)] = 20
+    # per task and stage, from widened initial states
+    spatial_episodes: Annotated[int, Ge(0), doc("0: no spatial probe")] = 0
     # foundation tasks are rolled out at stage 0, every N-th stage and the last (stream tasks and
     # every held-out loss at every stage): a long stream's failed foundation episodes, each run to
     # the episode limit, are most of its evaluation time, and retention needs stages 0 and k only
-    foundation_eval_every: int = 1
-    max_episode_steps: int = 200
-    foundation_steps: int = 4000
-    steps_per_task: int = 1500
-    batch_size: int = 256
-    lr: float = 3e-4
-    weight_decay: float = 0.0
-    grad_clip: float = 1.0
-    policy: str = "mlp"  # a registered policy (mlp, pi0) or module.path:Class / file.py:Class
-    policy_size: str = "default"
-    chunk_size: int = 4
-    n_action_steps: int = 4
+    foundation_eval_every: Annotated[
+        int, Ge(1), doc("1: every stage; N: stage 0, every N-th and the last")] = 1
+    max_episode_steps: Annotated[int, Ge(1)] = 200
+    foundation_steps: Annotated[int, Ge(1)] = 4000
+    steps_per_task: Annotated[int, Ge(1)] = 1500
+    batch_size: Annotated[int, Ge(1)] = 256
+    lr: Annotated[float, Gt(0)] = 3e-4
+    weight_decay: Annotated[float, Ge(0)] = 0.0
+    grad_clip: Annotated[float, Ge(0), doc("0: no clipping")] = 1.0
+    # a registered policy (mlp, pi0) or module.path:Class / file.py:Class (plan checks it)
+    policy: Annotated[str, MinLen(1)] = "mlp"
+    policy_size: Annotated[str, MinLen(1)] = "default"
+    chunk_size: Annotated[int, Ge(1)] = 4
+    n_action_steps: Annotated[int, Ge(1), AtMost("chunk_size")] = 4
     cameras: bool = False
-    image_size: int = 84
-    profile: str = ""
-    seed: int = 0  # first seed
-    seeds: int = 1  # number of seeds: seed, seed + 1, ...
-    method: str = "sft"
+    image_size: Annotated[int, Ge(1)] = 84
+    profile: Literal["", "quick", "standard", "tiny", "paper"] = ""
+    seed: Annotated[int, Ge(0)] = 0  # first seed
+    seeds: Annotated[int, Ge(1)] = 1  # number of seeds: seed, seed + 1, ...
+    method: Annotated[str, MinLen(1)] = "sft"
     method_params: dict[str, Any] = field(default_factory=dict)
     grid: str = ""  # a sweep: "kappa=0.1,0.25 w_min=0.05,0.2", one run per point and seed
-    foundation_lr: float = 3e-4  # kept apart from lr, so a sweep of lr shares one foundation
-    results_dir: str = "results"
-    cache_dir: str = "cache"
+    # kept apart from lr, so a sweep of lr shares one foundation
+    foundation_lr: Annotated[float, Gt(0)] = 3e-4
+    results_dir: Annotated[str, MinLen(1)] = "results"
+    cache_dir: Annotated[str, MinLen(1)] = "cache"
     demos_dir: str = ""  # real LIBERO dataset files (<task>_demo.hdf5) to train on instead of experts
     progress: bool = True
-    torch_threads: int = 1  # intra-op threads per process; small CPU batches are slower with more
-    eval_workers: int = 0  # evaluation processes; 0 means one per core
-    eval_envs_per_task: int = 2  # simulators per task and worker (memory against batching)
+    # intra-op threads per process; small CPU batches are slower with more
+    torch_threads: Annotated[int, Ge(1)] = 1
+    eval_workers: Annotated[int, Ge(0), doc("0: one per core")] = 0  # evaluation processes
+    # simulators per task and worker (memory against batching)
+    eval_envs_per_task: Annotated[int, Ge(1)] = 2
     # a stage's evaluation episodes are split into this many interleaved shares, each rolled out
     # in its own lockstep batch; fixed per run, so results never depend on how many workers (or
     # which executor) ran them. At most this many evaluation workers per job have work.
-    eval_shards: int = 2
-    learning_curve_every: int = 0  # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
-    executor: str = "local"  # where a comparison's jobs run: serial, local (processes) or ray
-    jobs: int = 0  # jobs at once; 0: as many as the cores allow given each job's workers
-    device: str = "cpu"  # cpu, cuda or auto (CUDA when present); CUDA trains in bf16 autocast
+    eval_shards: Annotated[int, Ge(1)] = 2
+    # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
+    learning_curve_every: Annotated[int, Ge(0), doc("0: off")] = 0
+    # where a comparison's jobs run: serial, local (processes) or ray
+    executor: Literal["serial", "local", "ray"] = "local"
+    jobs: Annotated[int, Ge(0), doc("0: as many as the cores allow")] = 0  # jobs at once
+    # cpu, cuda, cuda:N or auto (CUDA when present; plan checks it); CUDA trains in bf16 autocast
+    device: Annotated[str, MinLen(1)] = "cpu"
     compile: bool = False  # torch.compile the policy (worth it on a GPU)
 
     def workers(self) -> int:
@@ -101,8 +112,6 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
     "policy", "device", "compile"})
-
-EXECUTORS = ("serial", "local", "ray")
 
 # settings that cannot change a run's results (where it is written, how rollouts are split);
 # torch_threads stays in: the summation order of a matrix product depends on it
@@ -283,19 +292,5 @@ def resolve(args: list[str]) -> BenchConfig:
             set_field(cfg, key, value)
         else:
             cfg.method_params[key.removeprefix("method.")] = value
-    if cfg.seeds < 1:
-        raise RetainError(f"bad value {cfg.seeds} for seeds: expected at least 1")
-    if cfg.eval_shards < 1:
-        raise RetainError(f"bad value {cfg.eval_shards} for eval_shards: expected at least 1")
-    if cfg.executor not in EXECUTORS:
-        raise RetainError(f"unknown executor {cfg.executor!r}; valid: {', '.join(EXECUTORS)}")
-    if cfg.spatial_episodes < 0:
-        raise RetainError(f"bad value {cfg.spatial_episodes} for spatial_episodes: expected 0 "
-                          "(no spatial probe) or more")
-    if cfg.foundation_eval_every < 1:
-        raise RetainError(f"bad value {cfg.foundation_eval_every} for foundation_eval_every: "
-                          "expected 1 (every stage) or more (stage 0, every N-th and the last)")
-    if cfg.jobs < 0:
-        raise RetainError(f"bad value {cfg.jobs} for jobs: expected 0 (as many as the cores "
-                          "allow) or more")
+    check(cfg)  # every field against its declared values (harness/validation.py)
     return cfg
