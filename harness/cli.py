@@ -30,6 +30,7 @@ from harness.config import (
 from harness.errors import USER_ERRORS, RetainError
 from harness.executors import available_cores
 from harness.jobs import Job
+from harness.validation import check
 from methods import Method, get_method, method_names
 from suites import UnknownName, get_suite
 
@@ -118,6 +119,7 @@ def plan(args: list[str]) -> Plan:
                 set_field(run_cfg, key, value)
             else:
                 params[key] = value
+        check(run_cfg)  # a GRID point's settings, as resolve() checked the command line's
         for key in params:  # a setting must belong to at least one of the methods
             if not any(key in c.Config.__dataclass_fields__ for c in classes):
                 make_method(classes[0], {key: params[key]})
@@ -187,7 +189,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
     tracker.log_params(parent, provenance_params(cfg, provenance))
     tracking = Tracking(tracker.uri, parent, provenance)
     slots = plan_slots(cfg, len(keyed))
-    start, machine_start = time.time(), _machine_cpu()
+    usage = CpuUsage.now()
+    start = usage.wall
     status, children = "FAILED", []
     try:
         print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
@@ -228,7 +231,7 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
             print(f"  {r.method} seed {r.seed}: {r.run_dir}/")
         print(f"  MLflow: {tracker.uri} (experiment {cfg.name!r}); `make ui` to browse")
         print(f"[retain] {len(jobs)} jobs in {_duration(time.time() - start)} wall time, "
-              f"{_cpu_text(time.time() - start, machine_start)}", flush=True)
+              f"{usage.text()}", flush=True)
         status = "FINISHED"
         return 0
     except KeyboardInterrupt:
@@ -266,19 +269,42 @@ def _duration(seconds: float) -> str:
     return f"{minutes}m{secs:02d}s" if minutes else f"{secs}s"
 
 
-def _cpu_text(wall: float, machine_start: tuple[float, float] | None) -> str:
-    """How busy the cores were, a speed-up's other half: this process's CPU time and its
-    finished children's (local workers; Ray's workers are not its children) over wall time,
-    and the whole machine's busy share over the run (Linux)."""
+@dataclass
+class CpuUsage:
+    """How busy the cores were over a run, a speed-up's other half: the CPU time of this process
+    and of its finished children (local workers; Ray's workers are not its children), and the
+    whole machine's busy share (Linux). Every counter is cumulative since its process (or the
+    machine) started, so a run's share is the change from these readings, taken at its start:
+    the totals also held the imports before the run and any earlier run in the same process
+    (a one-second rerun once read "CPU time 11s (720% of 2 cores)")."""
+
+    wall: float
+    cpu: float
+    machine: tuple[float, float] | None
+
+    @classmethod
+    def now(cls) -> CpuUsage:
+        return cls(time.time(), _process_cpu(), _machine_cpu())
+
+    def since(self) -> tuple[float, float]:
+        """(wall seconds, CPU seconds) from these readings to now."""
+        return time.time() - self.wall, _process_cpu() - self.cpu
+
+    def text(self) -> str:
+        wall, cpu = self.since()
+        cores = available_cores()
+        text = f"CPU time {_duration(cpu)} ({cpu / max(wall, 1e-9) / cores:.0%} of {cores} cores)"
+        end = _machine_cpu()
+        if self.machine and end and end[1] > self.machine[1]:
+            busy = (end[0] - self.machine[0]) / (end[1] - self.machine[1])
+            text += f", machine busy {busy:.0%}"
+        return text
+
+
+def _process_cpu() -> float:
+    """CPU seconds of this process and of its children that have been waited for, so far."""
     usage = os.times()
-    cpu = usage.user + usage.system + usage.children_user + usage.children_system
-    cores = available_cores()
-    text = f"CPU time {_duration(cpu)} ({cpu / max(wall, 1e-9) / cores:.0%} of {cores} cores)"
-    end = _machine_cpu()
-    if machine_start and end and end[1] > machine_start[1]:
-        busy = (end[0] - machine_start[0]) / (end[1] - machine_start[1])
-        text += f", machine busy {busy:.0%}"
-    return text
+    return usage.user + usage.system + usage.children_user + usage.children_system
 
 
 def _machine_cpu() -> tuple[float, float] | None:

@@ -13,11 +13,13 @@ import types
 import typing
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import yaml
+from annotated_types import Ge, Gt, Interval, MinLen, doc
 
 from harness.errors import RetainError
+from harness.validation import AtMost, check
 
 BENCHMARK_DIR = Path(__file__).parent / "benchmarks"
 PROFILE_BENCHMARKS = {"quick": "mw-quick", "standard": "mw-standard", "tiny": "mw-quick",
@@ -26,69 +28,79 @@ PROFILE_BENCHMARKS = {"quick": "mw-quick", "standard": "mw-standard", "tiny": "m
 
 @dataclass
 class BenchConfig:
-    name: str
-    suite: str
-    foundation_tasks: list[str]
-    stream_tasks: list[str]
-    demos_per_task: int = 50
-    heldout_demos_per_task: int = 5
-    eval_episodes: int = 20
-    spatial_episodes: int = 0  # per task and stage, from widened initial states; 0: probe off
+    name: Annotated[str, MinLen(1)]
+    suite: Annotated[str, MinLen(1)]  # a registered suite (plan checks the name)
+    foundation_tasks: Annotated[list[str], MinLen(1)]
+    stream_tasks: Annotated[list[str], MinLen(1)]
+    demos_per_task: Annotated[int, Ge(1)] = 50
+    heldout_demos_per_task: Annotated[int, Ge(1)] = 5
+    eval_episodes: Annotated[int, Ge(1)] = 20
+    # per task and stage, from widened initial states
+    spatial_episodes: Annotated[int, Ge(0), doc("0: no spatial probe")] = 0
     # foundation tasks are rolled out at stage 0, every N-th stage and the last (stream tasks and
     # every held-out loss at every stage): a long stream's failed foundation episodes, each run to
     # the episode limit, are most of its evaluation time, and retention needs stages 0 and k only
-    foundation_eval_every: int = 1
-    max_episode_steps: int = 200
-    foundation_steps: int = 4000
-    steps_per_task: int = 1500
-    batch_size: int = 256
-    lr: float = 3e-4
-    weight_decay: float = 0.0
-    grad_clip: float = 1.0
-    policy: str = "mlp"  # a registered policy (mlp, pi0) or module.path:Class / file.py:Class
-    policy_size: str = "default"
-    chunk_size: int = 4
-    n_action_steps: int = 4
+    foundation_eval_every: Annotated[
+        int, Ge(1), doc("1: every stage; N: stage 0, every N-th and the last")] = 1
+    max_episode_steps: Annotated[int, Ge(1)] = 200
+    foundation_steps: Annotated[int, Ge(1)] = 4000
+    steps_per_task: Annotated[int, Ge(1)] = 1500
+    batch_size: Annotated[int, Ge(1)] = 256
+    lr: Annotated[float, Gt(0)] = 3e-4
+    weight_decay: Annotated[float, Ge(0)] = 0.0
+    grad_clip: Annotated[float, Ge(0), doc("0: no clipping")] = 1.0
+    # a registered policy (mlp, pi0) or module.path:Class / file.py:Class (plan checks it)
+    policy: Annotated[str, MinLen(1)] = "mlp"
+    policy_size: Annotated[str, MinLen(1)] = "default"
+    chunk_size: Annotated[int, Ge(1)] = 4
+    n_action_steps: Annotated[int, Ge(1), AtMost("chunk_size")] = 4
     cameras: bool = False
-    image_size: int = 84
-    profile: str = ""
-    seed: int = 0  # first seed
-    seeds: int = 1  # number of seeds: seed, seed + 1, ...
-    method: str = "sft"
+    image_size: Annotated[int, Ge(1)] = 84
+    profile: Literal["", "quick", "standard", "tiny", "paper"] = ""
+    seed: Annotated[int, Ge(0)] = 0  # first seed
+    seeds: Annotated[int, Ge(1)] = 1  # number of seeds: seed, seed + 1, ...
+    method: Annotated[str, MinLen(1)] = "sft"
     method_params: dict[str, Any] = field(default_factory=dict)
     grid: str = ""  # a sweep: "kappa=0.1,0.25 w_min=0.05,0.2", one run per point and seed
-    foundation_lr: float = 3e-4  # kept apart from lr, so a sweep of lr shares one foundation
-    results_dir: str = "results"
-    cache_dir: str = "cache"
+    # kept apart from lr, so a sweep of lr shares one foundation
+    foundation_lr: Annotated[float, Gt(0)] = 3e-4
+    results_dir: Annotated[str, MinLen(1)] = "results"
+    cache_dir: Annotated[str, MinLen(1)] = "cache"
     demos_dir: str = ""  # real LIBERO dataset files (<task>_demo.hdf5) to train on instead of experts
     progress: bool = True
-    torch_threads: int = 1  # intra-op threads per process; small CPU batches are slower with more
-    eval_workers: int = 0  # evaluation processes; 0 means one per core
-    eval_envs_per_task: int = 2  # simulators per task and worker (memory against batching)
+    # intra-op threads per process; small CPU batches are slower with more
+    torch_threads: Annotated[int, Ge(1)] = 1
+    eval_workers: Annotated[int, Ge(0), doc("0: one per core")] = 0  # evaluation processes
+    # simulators per task and worker (memory against batching)
+    eval_envs_per_task: Annotated[int, Ge(1)] = 2
     # a stage's evaluation episodes are split into this many interleaved shares, each rolled out
     # in its own lockstep batch; fixed per run, so results never depend on how many workers (or
     # which executor) ran them. At most this many evaluation workers per job have work.
-    eval_shards: int = 2
-    learning_curve_every: int = 0  # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
-    executor: str = "local"  # where a comparison's jobs run: serial, local (processes) or ray
-    jobs: int = 0  # jobs at once; 0: as many as the cores allow given each job's workers
-    device: str = "cpu"  # cpu, cuda or auto (CUDA when present); CUDA trains in bf16 autocast
+    eval_shards: Annotated[int, Ge(1)] = 2
+    # evaluate the stage's task every N steps (LIBERO's FWT/NBT/AUC)
+    learning_curve_every: Annotated[int, Ge(0), doc("0: off")] = 0
+    # where a comparison's jobs run: serial, local (processes) or ray
+    executor: Literal["serial", "local", "ray"] = "local"
+    jobs: Annotated[int, Ge(0), doc("0: as many as the cores allow")] = 0  # jobs at once
+    # cpu, cuda, cuda:N or auto (CUDA when present; plan checks it); CUDA trains in bf16 autocast
+    device: Annotated[str, MinLen(1)] = "cpu"
     compile: bool = False  # torch.compile the policy (worth it on a GPU)
     # -- the ConSFT paper's protocol (issue 36; docs/methods.md) ------------------------------
     # stream stages of several tasks trained together (the paper's target is a whole suite): how
     # many consecutive stream tasks each stage trains, [] for one task a stage. A benchmark file
     # writes it as nested lists, `stream_tasks: [[a, b, c], d]`, which sets this.
-    stage_sizes: list[int] = field(default_factory=list)
+    stage_sizes: list[Annotated[int, Ge(1)]] = field(default_factory=list)
     # matched target success: a stage trains until its tasks reach this success on check
     # episodes of their own (rolled out every check_every steps), or for steps_per_task; 0: off
-    until_success: float = 0.0
-    check_every: int = 250
-    check_episodes: int = 10  # per task, from the suite's "check" split, apart from evaluation's
+    until_success: Annotated[float, Interval(ge=0, le=1), doc("0: off")] = 0.0
+    check_every: Annotated[int, Ge(1)] = 250
+    # per task, from the suite's "check" split, apart from evaluation's
+    check_episodes: Annotated[int, Ge(1)] = 10
     # the fine-tuning optimizer, the same for every method (the foundation keeps torch's AdamW
     # defaults); the paper's: betas (0.9, 0.95), eps 1e-8, lr 2.5e-5, weight decay 1e-10
-    adam_beta1: float = 0.9
-    adam_beta2: float = 0.999
-    adam_eps: float = 1e-8
+    adam_beta1: Annotated[float, Interval(ge=0, lt=1)] = 0.9
+    adam_beta2: Annotated[float, Interval(ge=0, lt=1)] = 0.999
+    adam_eps: Annotated[float, Gt(0)] = 1e-8
     # the paper's held-out suites: name -> foundation tasks, each reported on its own and
     # averaged (its table 2: base, target, each held-out suite, the held-out average)
     heldout_groups: dict[str, list[str]] = field(default_factory=dict)
@@ -141,8 +153,6 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
     "policy", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups"})
 
-EXECUTORS = ("serial", "local", "ray")
-
 # settings that cannot change a run's results (where it is written, how rollouts are split);
 # torch_threads stays in: the summation order of a matrix product depends on it
 NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
@@ -165,15 +175,9 @@ def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:
 
 def check_protocol(cfg: BenchConfig) -> None:
     """The settings of the paper's protocol that only make sense together."""
-    if cfg.stage_sizes and (min(cfg.stage_sizes) < 1 or sum(cfg.stage_sizes) != len(cfg.stream_tasks)):
-        raise RetainError(f"bad value {cfg.stage_sizes} for stage_sizes: expected sizes of at least "
-                          f"1 that add up to the {len(cfg.stream_tasks)} stream tasks")
-    if not 0.0 <= cfg.until_success <= 1.0:
-        raise RetainError(f"bad value {cfg.until_success} for until_success: expected 0 (off) or a "
-                          "success rate in (0, 1]")
-    if cfg.until_success > 0 and (cfg.check_every < 1 or cfg.check_episodes < 1):
-        raise RetainError(f"until_success needs check_every >= 1 and check_episodes >= 1; got "
-                          f"{cfg.check_every} and {cfg.check_episodes}")
+    if cfg.stage_sizes and sum(cfg.stage_sizes) != len(cfg.stream_tasks):
+        raise RetainError(f"bad value {cfg.stage_sizes} for stage_sizes: expected sizes that add "
+                          f"up to the {len(cfg.stream_tasks)} stream tasks")
     for name, tasks in cfg.heldout_groups.items():
         outside = [t for t in tasks if t not in cfg.foundation_tasks]
         if outside:
@@ -355,20 +359,6 @@ def resolve(args: list[str]) -> BenchConfig:
             set_field(cfg, key, value)
         else:
             cfg.method_params[key.removeprefix("method.")] = value
-    if cfg.seeds < 1:
-        raise RetainError(f"bad value {cfg.seeds} for seeds: expected at least 1")
-    if cfg.eval_shards < 1:
-        raise RetainError(f"bad value {cfg.eval_shards} for eval_shards: expected at least 1")
-    if cfg.executor not in EXECUTORS:
-        raise RetainError(f"unknown executor {cfg.executor!r}; valid: {', '.join(EXECUTORS)}")
-    if cfg.spatial_episodes < 0:
-        raise RetainError(f"bad value {cfg.spatial_episodes} for spatial_episodes: expected 0 "
-                          "(no spatial probe) or more")
-    if cfg.foundation_eval_every < 1:
-        raise RetainError(f"bad value {cfg.foundation_eval_every} for foundation_eval_every: "
-                          "expected 1 (every stage) or more (stage 0, every N-th and the last)")
-    check_protocol(cfg)
-    if cfg.jobs < 0:
-        raise RetainError(f"bad value {cfg.jobs} for jobs: expected 0 (as many as the cores "
-                          "allow) or more")
+    check(cfg)  # every field against its declared values (harness/validation.py)
+    check_protocol(cfg)  # the paper's protocol settings that only make sense together
     return cfg

@@ -34,6 +34,7 @@ from harness.stages import (
 )
 from harness.trainer import TrainSettings, train_stage
 from harness.updates import paper_sparsity, update_stats
+from harness.validation import check
 from methods import Method, TaskContext
 from methods.base import snapshot
 from suites import Suite
@@ -63,7 +64,9 @@ class RunResult:
 
 
 def make_method(cls: type[Method], params: dict) -> Method:
-    """Instantiate with hyperparameters from the config; a typo is an error naming the field."""
+    """Instantiate with hyperparameters from the config; a typo, or a value outside the field's
+    declared range (harness/validation.py), is an error naming the field, before the method is
+    built."""
     config = cls.Config()
     valid = sorted(f.name for f in dataclasses.fields(config))
     bench = sorted(f.name for f in dataclasses.fields(BenchConfig) if f.name != "method_params")
@@ -74,6 +77,7 @@ def make_method(cls: type[Method], params: dict) -> Method:
                 f"{', '.join(valid) or '(none)'}; benchmark settings: {', '.join(bench)}"
             )
         set_field(config, key, value)
+    check(config, owner=cls.name)
     try:
         return cls(config)
     except ValueError as exc:

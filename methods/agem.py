@@ -12,8 +12,10 @@ so that no step increases the memory's loss to first order.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
+from annotated_types import Ge, doc
 
 from harness.datasets import TrainingData
 from methods import register_method
@@ -22,8 +24,9 @@ from methods.base import Method, MethodConfig, TaskContext
 
 @dataclass
 class AGEMConfig(MethodConfig):
-    memory_per_task: int = 1000  # samples kept per task (LIBERO's n_memories)
-    memory_batch: int = 0  # memory samples per reference gradient; 0: the training batch size
+    memory_per_task: Annotated[int, Ge(1)] = 1000  # samples kept per task (LIBERO's n_memories)
+    # memory samples per reference gradient
+    memory_batch: Annotated[int, Ge(0), doc("0: the training batch size")] = 0
 
 
 @torch.no_grad()
@@ -48,11 +51,6 @@ class AGEM(Method):
 
     def __init__(self, config: AGEMConfig | None = None):
         super().__init__(config)
-        c = self.config
-        if c.memory_per_task < 1:
-            raise ValueError(f"memory_per_task={c.memory_per_task} must be at least 1")
-        if c.memory_batch < 0:
-            raise ValueError(f"memory_batch={c.memory_batch} must be >= 0 (0: the batch size)")
         self.memory: TrainingData | None = None
         # Memory batches are drawn in after_backward, on the training thread, from a generator of
         # their own: the training batches (drawn ahead on a second thread) are SFT's.

@@ -35,29 +35,31 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import torch
+from annotated_types import Ge, Gt, Interval
 
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
 
-VARIANTS = ("paper", "kappa_temp", "dft", "ratio")
 LOSS_QUANTILES = (0.1, 0.5, 0.9)
 
 
 @dataclass
 class ConSFTConfig(MethodConfig):
-    variant: str = "paper"
-    tau_start: float = 0.003  # tau(0); a per-task setting in the paper (table 5)
-    tau_end: float = 5.0  # tau(t) for t >= T
-    kappa: float = 25.0
-    lam: float = 0.8  # lambda of Eq. 11: the schedule's curvature
-    c: float = 3.5  # the exponent of t/T in Eq. 11
-    w_min: float = 1e-3  # the floor on the weight
-    anneal_steps: int = 2000  # T: steps from tau_start to tau_end; a per-task setting (table 5)
-    eps: float = 1e-8  # the floor on rho(t) in Eq. 12 (left open by the paper)
-    tau_fixed: float = 1.0  # the dft and ratio variants' temperature
-    clip_eps: float = 0.2  # the ratio variant's trust region
+    variant: Literal["paper", "kappa_temp", "dft", "ratio"] = "paper"
+    tau_start: Annotated[float, Gt(0)] = 0.003  # tau(0); a per-task setting in the paper
+    tau_end: Annotated[float, Gt(0)] = 5.0  # tau(t) for t >= T
+    kappa: Annotated[float, Gt(0)] = 25.0
+    lam: Annotated[float, Gt(0)] = 0.8  # lambda of Eq. 11: the schedule's curvature
+    c: Annotated[float, Gt(0)] = 3.5  # the exponent of t/T in Eq. 11
+    w_min: Annotated[float, Interval(ge=0, le=1)] = 1e-3  # the floor on the weight
+    # T: steps from tau_start to tau_end; a per-task setting in the paper (table 5)
+    anneal_steps: Annotated[int, Ge(1)] = 2000
+    eps: Annotated[float, Gt(0)] = 1e-8  # the floor on rho(t) in Eq. 12 (left open by the paper)
+    tau_fixed: Annotated[float, Gt(0)] = 1.0  # the dft and ratio variants' temperature
+    clip_eps: Annotated[float, Interval(gt=0, lt=1)] = 0.2  # the ratio variant's trust region
 
 
 def annealing(t: int, c: ConSFTConfig) -> float:
@@ -78,9 +80,6 @@ class ConSFT(Method):
 
     def __init__(self, config: ConSFTConfig | None = None):
         super().__init__(config)
-        c = self.config
-        if c.variant not in VARIANTS:
-            raise ValueError(f"unknown consft variant {c.variant!r}; valid: {', '.join(VARIANTS)}")
         self.t = 0  # optimizer steps taken in this stage
         self._old_loss: torch.Tensor | None = None  # ratio: [N] per-sample loss at stage start
         self._draws: tuple[torch.Tensor, torch.Tensor] | None = None  # ratio: fixed (noise, t)

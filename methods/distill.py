@@ -18,19 +18,21 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import torch
+from annotated_types import Ge
 
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
 
-REFERENCES = ("previous", "foundation")
-
 
 @dataclass
 class DistillConfig(MethodConfig):
-    strength: float = 0.1  # lambda (LwF's lambda_o is 1; mw-quick sweep, docs/methods.md)
-    reference: str = "previous"  # previous: the model before this task; foundation: stage 0's
+    # lambda (LwF's lambda_o is 1; mw-quick sweep, docs/methods.md)
+    strength: Annotated[float, Ge(0)] = 0.1
+    # previous: the model before this task; foundation: stage 0's
+    reference: Literal["previous", "foundation"] = "previous"
 
 
 @register_method
@@ -41,9 +43,6 @@ class Distill(Method):
 
     def __init__(self, config: DistillConfig | None = None):
         super().__init__(config)
-        if self.config.reference not in REFERENCES:
-            raise ValueError(f"unknown distill reference {self.config.reference!r}; "
-                             f"valid: {', '.join(REFERENCES)}")
         self.reference_state: dict[str, torch.Tensor] | None = None  # the copy's weights
         self._reference: torch.nn.Module | None = None  # the copy, built from them
 

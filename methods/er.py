@@ -4,8 +4,10 @@ every batch. The one method here whose nature is to keep data."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
+from annotated_types import Ge, Interval
 
 from harness.datasets import TrainingData, merge_batches
 from methods import register_method
@@ -14,8 +16,10 @@ from methods.base import Method, MethodConfig, TaskContext
 
 @dataclass
 class ERConfig(MethodConfig):
-    buffer_per_task: int = 1000  # samples kept per task (LIBERO's ER keeps 1000 per task)
-    replay_ratio: float = 0.5  # fraction of every batch drawn from the buffer
+    # samples kept per task (LIBERO's ER keeps 1000 per task)
+    buffer_per_task: Annotated[int, Ge(1)] = 1000
+    # fraction of every batch drawn from the buffer
+    replay_ratio: Annotated[float, Interval(ge=0, lt=1)] = 0.5
 
 
 @register_method
@@ -26,8 +30,6 @@ class ExperienceReplay(Method):
 
     def __init__(self, config: ERConfig | None = None):
         super().__init__(config)
-        if not 0.0 <= self.config.replay_ratio < 1.0:
-            raise ValueError(f"replay_ratio={self.config.replay_ratio} must be in [0, 1)")
         self.buffer: TrainingData | None = None
 
     def sample_batch(self, ctx: TaskContext, batch_size: int, generator: torch.Generator) -> dict:

@@ -10,8 +10,10 @@ of a batch gradient, which would underestimate it by the batch size's averaging.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
+from annotated_types import Ge, Interval
 
 from methods import register_method
 from methods.anchored import AnchoredMethod, importance_batch, per_sample_gradient_mean
@@ -20,10 +22,11 @@ from methods.base import MethodConfig, TaskContext, snapshot
 
 @dataclass
 class EWCConfig(MethodConfig):
-    strength: float = 1e4  # lambda (sweep: docs/methods.md)
-    decay: float = 0.9  # gamma: how much of the earlier Fisher survives each task
-    fisher_samples: int = 1024
-    fisher_batch: int = 128
+    strength: Annotated[float, Ge(0)] = 1e4  # lambda (sweep: docs/methods.md)
+    # gamma: how much of the earlier Fisher survives each task
+    decay: Annotated[float, Interval(ge=0, le=1)] = 0.9
+    fisher_samples: Annotated[int, Ge(1)] = 1024
+    fisher_batch: Annotated[int, Ge(1)] = 128
 
 
 def per_sample_fisher(policy: torch.nn.Module, batch: dict, chunk: int = 128) -> dict[str, torch.Tensor]:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
+
+from annotated_types import Ge
 
 from methods import register_method
 from methods.anchored import AnchoredMethod
@@ -11,7 +14,7 @@ from methods.base import MethodConfig, TaskContext, snapshot
 
 @dataclass
 class L2Config(MethodConfig):
-    strength: float = 1.0  # lambda
+    strength: Annotated[float, Ge(0)] = 1.0  # lambda
 
 
 @register_method

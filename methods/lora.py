@@ -12,8 +12,10 @@ from __future__ import annotations
 import copy
 import re
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
+from annotated_types import Ge, Gt, Interval
 
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
@@ -23,9 +25,10 @@ ADAPTER = "default"
 
 @dataclass
 class LoRAConfig(MethodConfig):
-    rank: int = 8  # r (the paper's RoBERTa/DeBERTa setting)
-    alpha: float = 8.0  # the update is scaled by alpha / rank (the paper sets alpha to r)
-    dropout: float = 0.0  # on the adapter's input (peft's default)
+    rank: Annotated[int, Ge(1)] = 8  # r (the paper's RoBERTa/DeBERTa setting)
+    # the update is scaled by alpha / rank (the paper sets alpha to r)
+    alpha: Annotated[float, Gt(0)] = 8.0
+    dropout: Annotated[float, Interval(ge=0, lt=1)] = 0.0  # on the adapter's input (peft's default)
     # Python regex, full-matched against module names; the Linear layers among the matches get
     # adapters. The default: the action expert of FlowMatchingPolicy. ".*": every Linear layer.
     target: str = r"(action_in|blocks\..*|action_out\..*)"
@@ -39,10 +42,6 @@ class LoRA(Method):
     def __init__(self, config: LoRAConfig | None = None):
         super().__init__(config)
         c = self.config
-        if c.rank < 1:
-            raise ValueError(f"rank={c.rank} must be at least 1")
-        if not 0.0 <= c.dropout < 1.0:
-            raise ValueError(f"dropout={c.dropout} must be in [0, 1)")
         try:
             self._pattern = re.compile(c.target)
         except re.error as exc:

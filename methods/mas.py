@@ -15,8 +15,10 @@ accumulates online over the foundation and every finished task; decay = 1 is the
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
+from annotated_types import Ge, Interval
 
 from methods import register_method
 from methods.anchored import AnchoredMethod, importance_batch, per_sample_gradient_mean
@@ -25,10 +27,11 @@ from methods.base import MethodConfig, TaskContext, snapshot
 
 @dataclass
 class MASConfig(MethodConfig):
-    strength: float = 1.0  # lambda (Aljundi et al.'s 1)
-    decay: float = 1.0  # how much of the earlier importance survives each task (1: the sum)
-    importance_samples: int = 1024
-    importance_batch: int = 128
+    strength: Annotated[float, Ge(0)] = 1.0  # lambda (Aljundi et al.'s 1)
+    # how much of the earlier importance survives each task (1: the sum)
+    decay: Annotated[float, Interval(ge=0, le=1)] = 1.0
+    importance_samples: Annotated[int, Ge(1)] = 1024
+    importance_batch: Annotated[int, Ge(1)] = 128
 
 
 def output_sensitivity(policy: torch.nn.Module, batch: dict, chunk: int = 128

@@ -12,8 +12,10 @@ Buffers (the normalization statistics) are the foundation's throughout and are n
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
+from annotated_types import Interval
 
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext, snapshot
@@ -21,7 +23,8 @@ from methods.base import Method, MethodConfig, TaskContext, snapshot
 
 @dataclass
 class MergeConfig(MethodConfig):
-    alpha: float = 0.75  # weight of the fine-tuned model (WiSE-FT's; mw-quick sweep, docs/methods.md)
+    # weight of the fine-tuned model (WiSE-FT's; mw-quick sweep, docs/methods.md)
+    alpha: Annotated[float, Interval(ge=0, le=1)] = 0.75
 
 
 @register_method
@@ -31,8 +34,6 @@ class WeightMerge(Method):
 
     def __init__(self, config: MergeConfig | None = None):
         super().__init__(config)
-        if not 0.0 <= self.config.alpha <= 1.0:
-            raise ValueError(f"alpha={self.config.alpha} must be in [0, 1]")
         self.theta0: dict[str, torch.Tensor] | None = None
 
     @torch.no_grad()

@@ -17,8 +17,10 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
+from annotated_types import Ge, Gt, Interval, doc
 from torch import nn
 
 from methods import register_method
@@ -30,12 +32,13 @@ PRUNABLE = (nn.Linear, nn.Conv1d, nn.Conv2d, nn.Conv3d)
 
 @dataclass
 class PackNetConfig(MethodConfig):
-    prune_ratio: float = 0.75  # of a task's trainable weights, the fraction freed (LIBERO's 0.75)
+    # of a task's trainable weights, the fraction freed (LIBERO's 0.75)
+    prune_ratio: Annotated[float, Interval(gt=0, lt=1)] = 0.75
     # post-prune retraining, in steps as a fraction of the stage's (LIBERO: 50 epochs after 50)
-    post_prune_fraction: float = 1.0
-    post_prune_lr: float = 3e-4  # AdamW, as the benchmark's default lr
-    post_prune_batch: int = 256
-    post_prune_grad_clip: float = 1.0
+    post_prune_fraction: Annotated[float, Ge(0), doc("0: no retraining")] = 1.0
+    post_prune_lr: Annotated[float, Gt(0)] = 3e-4  # AdamW, as the benchmark's default lr
+    post_prune_batch: Annotated[int, Ge(1)] = 256
+    post_prune_grad_clip: Annotated[float, Ge(0), doc("0: no clipping")] = 1.0
 
 
 def prunable_weights(policy: nn.Module) -> dict[str, nn.Parameter]:
@@ -52,11 +55,6 @@ class PackNet(Method):
 
     def __init__(self, config: PackNetConfig | None = None):
         super().__init__(config)
-        c = self.config
-        if not 0.0 < c.prune_ratio < 1.0:
-            raise ValueError(f"prune_ratio={c.prune_ratio} must be in (0, 1)")
-        if c.post_prune_fraction < 0:
-            raise ValueError(f"post_prune_fraction={c.post_prune_fraction} must be >= 0")
         # parameter name -> stage that owns each weight (FREE if none): all PackNet keeps
         self.owner: dict[str, torch.Tensor] | None = None
         self._weights: dict[str, nn.Parameter] = {}  # this stage: the packed weights, by name

@@ -6,6 +6,8 @@ import math
 import pytest
 import torch
 
+from harness.errors import RetainError
+from harness.runner import make_method
 from methods.consft import ConSFT, ConSFTConfig, annealing, temperature
 from tests.conftest import make_batch
 from tests.test_methods import _ctx, _data
@@ -136,5 +138,5 @@ def test_ratio_caches_losses_with_the_draws_it_reuses(tiny_policy):
 
 
 def test_the_abstract_only_clip_reading_is_gone():
-    with pytest.raises(ValueError, match="'clip'.*paper, kappa_temp, dft, ratio"):
-        ConSFT(ConSFTConfig(variant="clip"))
+    with pytest.raises(RetainError, match="'clip' for variant.*paper, kappa_temp, dft, ratio"):
+        make_method(ConSFT, {"variant": "clip"})

@@ -87,8 +87,12 @@ def test_merge_interpolates_with_the_foundation(tiny_policy, alpha):
 
 
 def test_merge_rejects_alpha_outside_zero_one():
-    with pytest.raises(ValueError, match="alpha=1.5 must be in"):
-        WeightMerge(MergeConfig(alpha=1.5))
+    from harness.errors import RetainError
+    from harness.runner import make_method
+
+    with pytest.raises(RetainError, match=r"bad value 1.5 for alpha \(method merge\): expected "
+                                          r"a number in \[0, 1\]"):
+        make_method(WeightMerge, {"alpha": "1.5"})
 
 
 # --- distill ----------------------------------------------------------------------------------
@@ -146,8 +150,12 @@ def test_distill_at_strength_zero_is_sft_bit_for_bit(tiny_policy):
 
 
 def test_distill_rejects_an_unknown_reference():
-    with pytest.raises(ValueError, match="unknown distill reference 'teacher'; valid: previous"):
-        Distill(DistillConfig(reference="teacher"))
+    from harness.errors import RetainError
+    from harness.runner import make_method
+
+    with pytest.raises(RetainError, match="bad value 'teacher' for reference .*: expected one of "
+                                          "previous, foundation"):
+        make_method(Distill, {"reference": "teacher"})
 
 
 # --- mas --------------------------------------------------------------------------------------

@@ -103,8 +103,12 @@ def test_packnet_evaluation_view_zeroes_later_tasks_weights_and_restores_them():
 
 
 def test_packnet_rejects_a_prune_ratio_outside_0_1():
-    with pytest.raises(ValueError, match="prune_ratio=1.0"):
-        PackNet(PackNetConfig(prune_ratio=1.0))
+    from harness.errors import RetainError
+    from harness.runner import make_method
+
+    with pytest.raises(RetainError, match=r"bad value 1.0 for prune_ratio .*: expected a number "
+                                          r"in \(0, 1\)"):
+        make_method(PackNet, {"prune_ratio": "1.0"})
 
 
 # -- A-GEM -------------------------------------------------------------------------------------
