@@ -68,7 +68,8 @@ bench-eval: $(STAMP)
 
 # every CUDA path end to end on a tiny budget, a PASS or FAIL line and a figure per part (pi0 at
 # batch 64: samples/s and MFU; evaluation with two 128-px cameras; a GPU run killed and resumed):
-#   make gpu-check [device=cuda|cpu] [parts=train,eval,resume]; without a GPU, a CPU smoke test.
+#   make gpu-check [device=cuda|cpu] [parts=train,methods,eval,resume]; without a GPU, a CPU
+#   smoke test.
 #   On a device machine without the project's packages: docs/performance.md, "The GPU check"
 gpu-check: $(STAMP)
 	$(PY) -m harness.gpu_check $(call quote,$(filter device=% parts=%,$(OVERRIDES)))

@@ -5,6 +5,8 @@ differently on CUDA and prints a PASS or FAIL line with a figure for each part:
 
 - train: pi0's GPU size at batch 64 in bf16 autocast with the fused AdamW on the device, eager
   and `torch.compile`d (samples/s and model-FLOPs utilisation), pi0's action sampling there;
+- methods: every registered method's hooks and state with the policy on the device, through a
+  stage checkpoint and the next stage, as a resumed run goes;
 - eval: the central-policy evaluator (policy on the device, simulators in worker processes)
   with two rendered cameras, against raw step-plus-render throughput of the same environments;
 - resume: a real `harness bench` run on the device (`compile=true`, cameras) SIGKILLed mid-stream
@@ -47,7 +49,7 @@ from harness.perf import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-PARTS = ("train", "eval", "resume")
+PARTS = ("train", "methods", "eval", "resume")
 STAGE_DONE = re.compile(r"stage (\d+) \(.*\) done")
 RESUMED = re.compile(r"resuming after stage (\d+) of (\d+)")
 
@@ -67,6 +69,9 @@ class CheckSize:
     compile_backend: str  # inductor on CUDA; aot_eager on the CPU (inductor's C++ build: minutes)
     loss_rtol: float  # compiled against eager final loss (bf16 on CUDA, fp32 on the CPU)
     sample_batch: int  # pi0.sample_actions batch: the central evaluator's slots
+    # methods: every registered method on an mlp of this size
+    methods_policy_size: str
+    methods_steps: int
     # eval: an untrained mlp on mw-quick's nine tasks
     eval_policy_size: str
     eval_image_size: int
@@ -83,6 +88,7 @@ class CheckSize:
 GPU = CheckSize(
     "GPU", policy_size="large", image_size=224, chunk=50, batch_size=64, steps=30, warmup=10,
     compile_backend="inductor", loss_rtol=0.05, sample_batch=18,
+    methods_policy_size="default", methods_steps=5,
     eval_policy_size="default", eval_image_size=128, eval_episodes=2, eval_max_steps=100,
     eval_workers=max(2, min(8, (os.cpu_count() or 2) // 2)), eval_tasks=0, eval_in_process=True,
     resume_settings=("compile=true", "cameras=true", "image_size=128", "eval_workers=2"),
@@ -91,6 +97,7 @@ GPU = CheckSize(
 CPU_SMOKE = CheckSize(
     "CPU smoke test", policy_size="tiny", image_size=24, chunk=4, batch_size=8, steps=3, warmup=2,
     compile_backend="aot_eager", loss_rtol=1e-3, sample_batch=4,
+    methods_policy_size="tiny", methods_steps=2,
     eval_policy_size="tiny", eval_image_size=32, eval_episodes=1, eval_max_steps=4,
     eval_workers=2, eval_tasks=2, eval_in_process=False,
     # compile=true would build inductor's C++ kernels (minutes on two cores) and cameras would
@@ -250,6 +257,57 @@ def train_figure(device: torch.device, size: CheckSize, eager, compiled, latency
     if device.type == "cuda":
         text += f"; peak memory {max(eager.peak_gib, compiled.peak_gib):.1f} GiB"
     return text
+
+
+# -- methods ---------------------------------------------------------------------------------
+
+def check_methods(device: torch.device, size: CheckSize, work: Path) -> PartResult:
+    """Every registered method with the policy on the device, as a run calls it: its stage-0
+    hook on the foundation data (on the CPU, as the runner hands it over), a stage, its state
+    through a stage checkpoint (which loads on the CPU), then the next stage with a fresh
+    instance, as a resumed run continues."""
+    from harness.stages import load_checkpoint, save_checkpoint
+    from harness.trainer import TrainSettings, train_stage
+    from methods import get_method, method_names
+    from methods.base import TaskContext
+
+    result = PartResult("methods")
+    data = [synthetic_data(256, seed, task) for seed, task in
+            enumerate(("foundation", "task-1", "task-2"))]
+    settings = TrainSettings(size.methods_steps, 32, 1e-3)
+    names = method_names()
+    for name in names:
+        try:
+            policy = _policy(size.methods_policy_size).to(device)
+            policy.state_norm.fit(data[0].obs["state"])
+            policy.action_norm.fit(data[0].actions.flatten(0, 1))
+            method = get_method(name)()
+            method.after_task(TaskContext(0, "foundation", data[0], policy, 0.05, 0))
+            g = torch.Generator().manual_seed(0)
+            first = train_stage(TaskContext(1, "task-1", data[1], policy, 0.05, settings.steps),
+                                method, settings, g)
+            path = work / "methods" / f"{name}.pt"
+            save_checkpoint(path, {"policy": policy.state_dict(), "method": method.state_dict()})
+            saved = load_checkpoint(path)
+            policy.load_state_dict(saved["policy"])
+            resumed = get_method(name)()
+            resumed.load_state_dict(saved["method"])
+            second = train_stage(TaskContext(2, "task-2", data[2], policy, 0.05, settings.steps),
+                                 resumed, settings, g)
+            with torch.no_grad(), autocast(device):
+                actions = resumed.mid_task_policy(policy).sample_actions(
+                    {k: v[:4] for k, v in data[2].to(device).batch(torch.arange(4)).items()})
+            losses = torch.tensor([first.final_loss, second.final_loss])
+            result.expect(bool(torch.isfinite(losses).all() and torch.isfinite(actions).all()),
+                          f"{name}: losses {losses.tolist()}, actions finite: "
+                          f"{bool(torch.isfinite(actions).all())}")
+        except Exception as exc:  # one method's failure is named, the others still run
+            result.failures.append(f"{name}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
+    broken = {f.split(":")[0] for f in result.failures}
+    result.figure = (f"{len(names) - len(broken)} of {len(names)} methods trained a stage, "
+                     f"resumed from its checkpoint and trained the next on {device} "
+                     f"({size.methods_policy_size} mlp, {size.methods_steps} steps a stage)")
+    return result
 
 
 # -- eval --------------------------------------------------------------------------------------
@@ -489,6 +547,7 @@ def run_check(device: torch.device, parts: list[str], work: Path) -> list[PartRe
     print(f"[gpu-check] {size.name} on {device} ({name}), torch {torch.__version__}, "
           f"CUDA {torch.version.cuda}; parts: {', '.join(parts)}", flush=True)
     checks = {"train": lambda: check_train(device, size),
+              "methods": lambda: check_methods(device, size, work),
               "eval": lambda: check_eval(device, size),
               "resume": lambda: check_resume(device, size, work)}
     results = []
