@@ -17,7 +17,7 @@ OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v)
 quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
 .PHONY: bench compare sweep study report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
-	bench-eval libero-check test-slow
+	bench-eval libero-check test-slow gpu-check
 
 $(STAMP): requirements.lock pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -65,6 +65,14 @@ bench-eval: $(STAMP)
 	$(PY) -m harness.perf eval $(or $(WORKERS),2) --bench $(or $(BENCH),mw-quick) \
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
 		$(if $(device),--device $(device))
+
+# every CUDA path end to end on a tiny budget, a PASS or FAIL line and a figure per part (pi0 at
+# batch 64: samples/s and MFU; evaluation with two 128-px cameras; a GPU run killed and resumed):
+#   make gpu-check [device=cuda|cpu] [parts=train,methods,eval,resume]; without a GPU, a CPU
+#   smoke test.
+#   On a device machine without the project's packages: docs/performance.md, "The GPU check"
+gpu-check: $(STAMP)
+	$(PY) -m harness.gpu_check $(call quote,$(filter device=% parts=%,$(OVERRIDES)))
 
 # every real LIBERO task builds, starts from an init state and steps (slow: about 10 minutes for
 # all 130); make libero-check LIBERO_SUITES="libero_object libero_goal"

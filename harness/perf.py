@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
 from multiprocessing import get_context
 
 import torch
@@ -27,7 +28,7 @@ from harness.trainer import PhaseTimer, TrainSettings, train_stage
 from methods import TaskContext, get_method, method_names
 from policies import make_config, policy_for_config
 from policies.text_encoder import tokenize_instructions
-from suites.base import run_expert_episode
+from suites.base import CAMERA_KEYS, run_expert_episode
 
 STATE_DIM, ACTION_DIM = 39, 4  # Meta-World's
 CAMERAS = ("agentview_rgb", "eye_in_hand_rgb")
@@ -113,12 +114,65 @@ def step_flops(policy, batch: dict, device: torch.device) -> int:
     return counter.get_total_flops()
 
 
+@dataclass(frozen=True)
+class TrainFigures:
+    """One timed training stage of a policy (`measure_training`)."""
+
+    compiled: bool
+    parameters: int
+    samples_per_s: float
+    step_ms: float
+    flops_per_step: int  # forward and backward, counted by `step_flops`
+    mfu: float | None  # achieved FLOP/s over the device's dense bf16 peak; None off CUDA
+    peak_gib: float  # peak GPU memory allocated; 0 off CUDA
+    first_loss: float  # the warm-up's first step
+    final_loss: float  # the timed stage's last 10% of steps
+
+
+def pi0_gpu_fields(image_size: int = 224, chunk: int = 50, action_dim: int = 7) -> dict:
+    """pi0's GPU setting: two cameras, 50-action chunks of 7-d actions (the anchor's)."""
+    return dict(action_dim=action_dim, chunk_size=chunk, n_action_steps=chunk,
+                image_keys=CAMERAS, image_size=image_size)
+
+
+def measure_training(policy, data: TrainingData, device: torch.device, batch_size: int,
+                     steps: int, warmup: int = 10, compiled: bool = False,
+                     backend: str = "inductor") -> TrainFigures:
+    """SFT stages of `policy` on `data` where the policy is (bf16 autocast and the fused AdamW
+    on CUDA): `warmup` steps (compilation, allocator), then `steps` timed ones."""
+    data = data.to(device)
+    policy.state_norm.fit(data.obs["state"])
+    policy.action_norm.fit(data.actions.flatten(0, 1))
+    flops = step_flops(policy, data.batch(torch.arange(batch_size, device=device)), device)
+    if compiled:
+        policy.compile(backend=backend)
+    ctx = TaskContext(1, "task", data, policy, 0.05, steps)
+    g = torch.Generator().manual_seed(0)
+    losses: list[float] = []
+    train_stage(ctx, get_method("sft")(), TrainSettings(warmup, batch_size, 1e-4), g,
+                log=lambda step, m: losses.append(m["train/flow_loss"]))
+    cuda = device.type == "cuda"
+    if cuda:
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+    start = time.perf_counter()
+    result = train_stage(ctx, get_method("sft")(), TrainSettings(steps, batch_size, 1e-4), g)
+    if cuda:
+        torch.cuda.synchronize(device)
+    total = time.perf_counter() - start
+    peak = _peak_tflops(device) if cuda else None
+    return TrainFigures(
+        compiled=compiled, parameters=sum(p.numel() for p in policy.parameters()),
+        samples_per_s=steps * batch_size / total, step_ms=1000 * total / steps,
+        flops_per_step=flops, mfu=flops * steps / total / 1e12 / peak if peak else None,
+        peak_gib=torch.cuda.max_memory_allocated(device) / 2**30 if cuda else 0.0,
+        first_loss=losses[0], final_loss=result.final_loss)
+
+
 def bench_train_gpu(device: torch.device, batch_size: int = 64, steps: int = 50,
                     compile: bool = False) -> None:
     """pi0's GPU size (ViT-B on two 224x224 cameras, 50-action chunks) in bf16 autocast."""
-    fields = dict(action_dim=7, chunk_size=50, n_action_steps=50, image_keys=CAMERAS,
-                  image_size=224)
-    data = synthetic_data(1024, 0, chunk=50, action_dim=7, image_size=224).to(device)
+    data = synthetic_data(1024, 0, chunk=50, action_dim=7, image_size=224)
     peak = _peak_tflops(device)
     print(f"pi0 large training on {torch.cuda.get_device_name(device)} (batch {batch_size}, "
           f"{steps} steps after a warm-up, bf16 autocast, fused AdamW; MFU against "
@@ -126,28 +180,12 @@ def bench_train_gpu(device: torch.device, batch_size: int = 64, steps: int = 50,
     print("| policy | mode | parameters | samples/s | step ms | TFLOP/step | MFU | peak GiB |")
     print("|---|---|---|---|---|---|---|---|")
     for compiled in (False, True) if compile else (False,):
-        policy = _policy("large", "pi0", **fields).to(device)
-        policy.state_norm.fit(data.obs["state"])
-        policy.action_norm.fit(data.actions.flatten(0, 1))
-        flops = step_flops(policy, data.batch(torch.arange(batch_size, device=device)), device)
-        if compiled:
-            policy.compile()
-        ctx = TaskContext(1, "task", data, policy, 0.05, steps)
-        g = torch.Generator().manual_seed(0)
-        train_stage(ctx, get_method("sft")(), TrainSettings(10, batch_size, 1e-4), g)  # warm-up
-        torch.cuda.synchronize(device)
-        torch.cuda.reset_peak_memory_stats(device)
-        start = time.perf_counter()
-        train_stage(ctx, get_method("sft")(), TrainSettings(steps, batch_size, 1e-4), g)
-        torch.cuda.synchronize(device)
-        total = time.perf_counter() - start
-        n_params = sum(p.numel() for p in policy.parameters())
-        achieved = flops * steps / total / 1e12
-        mfu = f"{100 * achieved / peak:.1f}% (target >= 40%)" if peak else "n/a"
-        print(f"| pi0 large | {'compiled' if compiled else 'eager'} | {n_params:,} | "
-              f"{steps * batch_size / total:,.0f} | {1000 * total / steps:.1f} | "
-              f"{flops / 1e12:.2f} | {mfu} | "
-              f"{torch.cuda.max_memory_allocated(device) / 2**30:.1f} |")
+        policy = _policy("large", "pi0", **pi0_gpu_fields()).to(device)
+        f = measure_training(policy, data, device, batch_size, steps, compiled=compiled)
+        mfu = f"{100 * f.mfu:.1f}% (target >= 40%)" if f.mfu is not None else "n/a"
+        print(f"| pi0 large | {'compiled' if compiled else 'eager'} | {f.parameters:,} | "
+              f"{f.samples_per_s:,.0f} | {f.step_ms:.1f} | {f.flops_per_step / 1e12:.2f} | "
+              f"{mfu} | {f.peak_gib:.1f} |")
 
 
 def _rss_mb() -> float:
@@ -249,19 +287,53 @@ def _raw_expert_share(suite_name: str, episodes, max_steps: int, cameras: bool =
                                   min(max_steps, ep.max_steps)).steps for ep in episodes)
 
 
-def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, cameras: bool = False,
-               image_size: int = 84, device: str = "cpu", central_policy: bool | None = None,
-               bench: str = "mw-quick") -> None:
-    """Evaluation env steps/s against raw expert stepping (with the same rendering: raw
-    step-plus-render throughput when cameras are on) on a benchmark's tasks; 1 -> 2 worker
-    speed-up. A policy on an accelerator is evaluated with one central policy and simulators in
-    the workers. A suite with its own step limits (LIBERO) runs each task at its own."""
+@dataclass
+class EvalRun:
+    """One timed evaluation pass with `processes` processes."""
+
+    processes: int
+    layout: str  # "in-process", "per-worker" or "central" (Evaluator.layout)
+    steps_per_s: float
+    seconds: float
+    results: dict = field(default_factory=dict)  # task -> TaskEvaluation
+
+
+@dataclass
+class EvalFigures:
+    """Evaluation throughput against raw expert stepping of the same environments."""
+
+    bench: str
+    tasks: list[str]
+    episodes: int
+    max_steps: int
+    cameras: bool
+    image_size: int
+    device: str
+    raw_processes: int
+    raw_steps_per_s: float
+    raw_seconds: float
+    runs: list[EvalRun]
+    step_limited_by_suite: bool  # LIBERO: each task at its own limit
+
+    def ratio(self) -> float:
+        """Evaluation over raw throughput, both with the most processes."""
+        return self.runs[-1].steps_per_s / self.raw_steps_per_s
+
+
+def measure_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200,
+                 cameras: bool = False, image_size: int = 84, device: str = "cpu",
+                 central_policy: bool | None = None, bench: str = "mw-quick",
+                 processes: tuple[int, ...] | None = None,
+                 policy_size: str = "default", n_tasks: int = 0) -> EvalFigures:
+    """Evaluation env steps/s of an untrained policy against raw expert stepping (with the same
+    rendering when cameras are on), with 1 and `workers` processes (or `processes`), on the
+    benchmark's tasks (its first `n_tasks`, when given)."""
     from suites import get_suite
-    from suites.base import CAMERA_KEYS
 
     benchmark = load_benchmark(bench)
     suite = get_suite(benchmark.suite)
     tasks = benchmark.foundation_tasks + benchmark.stream_tasks
+    tasks = tasks[:n_tasks] if n_tasks > 0 else tasks
     eps = evaluation_episodes(suite, tasks, episodes, max_steps)
     settings = EvalSettings(episodes, max_steps, n_action_steps=4, cameras=cameras,
                             image_size=image_size, envs_per_task=benchmark.eval_envs_per_task,
@@ -276,33 +348,49 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, camer
         raw_steps = sum(pool.map(_raw_expert_share, suites, shares, [max_steps] * workers, *render))
         raw_time = time.perf_counter() - start
     image_keys = CAMERA_KEYS if cameras else ()
-    policy = _policy("default", image_keys=image_keys, image_size=image_size,
+    policy = _policy(policy_size, image_keys=image_keys, image_size=image_size,
                      state_dim=suite.state_dim, action_dim=suite.action_dim
                      ).to(resolve_device(device))
     instructions = {t: torch.randn(384).numpy() for t in tasks}
-    rates, layouts = {}, {}
-    for n in (1, workers):
+    runs = []
+    for n in processes or (1, workers):
         with Evaluator(suite, settings, workers=n, central_policy=central_policy) as evaluator:
-            layouts[n] = evaluator.layout(policy)
+            layout = evaluator.layout(policy)
             evaluator.evaluate(policy, tasks, instructions, noise_seed=0)  # warm
             start = time.perf_counter()
             results = evaluator.evaluate(policy, tasks, instructions, noise_seed=0)
             elapsed = time.perf_counter() - start
-        rates[n] = (sum(r.steps for r in results.values()) / elapsed, elapsed)
-    raw_rate = raw_steps / raw_time
+        steps = sum(r.steps for r in results.values())
+        runs.append(EvalRun(n, layout, steps / elapsed, elapsed, results))
+    return EvalFigures(bench, tasks, episodes, max_steps, cameras, image_size,
+                       policy_device_name(policy), workers, raw_steps / raw_time, raw_time, runs,
+                       bool(suite.max_steps(tasks[0])))
+
+
+def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, cameras: bool = False,
+               image_size: int = 84, device: str = "cpu", central_policy: bool | None = None,
+               bench: str = "mw-quick") -> None:
+    """Evaluation env steps/s against raw expert stepping (with the same rendering: raw
+    step-plus-render throughput when cameras are on) on a benchmark's tasks; 1 -> 2 worker
+    speed-up. A policy on an accelerator is evaluated with one central policy and simulators in
+    the workers. A suite with its own step limits (LIBERO) runs each task at its own."""
+    f = measure_eval(workers, episodes, max_steps, cameras, image_size, device, central_policy,
+                     bench)
     images = f"two {image_size}x{image_size} cameras" if cameras else "no cameras"
-    limit = "each task's own step limit" if suite.max_steps(tasks[0]) else f"<= {max_steps} steps"
-    print(f"evaluation on {bench}'s {len(tasks)} tasks x {episodes} episodes, {limit}, {images} "
-          f"(untrained default policy on {policy_device_name(policy)}, so episodes run long)")
+    limit = "each task's own step limit" if f.step_limited_by_suite else f"<= {max_steps} steps"
+    print(f"evaluation on {bench}'s {len(f.tasks)} tasks x {episodes} episodes, {limit}, {images} "
+          f"(untrained default policy on {f.device}, so episodes run long)")
     print("| what | processes | layout | env steps/s | wall s |")
     print("|---|---|---|---|---|")
     raw_what = "raw simulator + render + scripted experts" if cameras else \
         "raw simulator + scripted experts"
-    print(f"| {raw_what} | {workers} | - | {raw_rate:,.0f} | {raw_time:.1f} |")
-    for n, (rate, elapsed) in rates.items():
-        print(f"| policy evaluation | {n} | {layouts[n]} | {rate:,.0f} | {elapsed:.1f} |")
-    print(f"evaluation / raw with {workers} processes: {rates[workers][0] / raw_rate:.2f} (target >= 0.8)")
-    print(f"speed-up 1 -> {workers} workers: {rates[1][1] / rates[workers][1]:.2f}x (target >= 1.6x)")
+    print(f"| {raw_what} | {workers} | - | {f.raw_steps_per_s:,.0f} | {f.raw_seconds:.1f} |")
+    for run in f.runs:
+        print(f"| policy evaluation | {run.processes} | {run.layout} | {run.steps_per_s:,.0f} | "
+              f"{run.seconds:.1f} |")
+    print(f"evaluation / raw with {workers} processes: {f.ratio():.2f} (target >= 0.8)")
+    print(f"speed-up 1 -> {workers} workers: {f.runs[0].seconds / f.runs[-1].seconds:.2f}x "
+          "(target >= 1.6x)")
 
 
 def policy_device_name(policy) -> str:
