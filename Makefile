@@ -17,7 +17,7 @@ OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v)
 quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
 .PHONY: bench compare sweep study report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
-	bench-eval libero-check test-slow
+	bench-eval bench-tracking libero-check test-slow
 
 $(STAMP): requirements.lock pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -65,6 +65,14 @@ bench-eval: $(STAMP)
 	$(PY) -m harness.perf eval $(or $(WORKERS),2) --bench $(or $(BENCH),mw-quick) \
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
 		$(if $(device),--device $(device))
+
+# N processes log what a benchmark job logs, all at once, to one loopback `mlflow server` started as
+# mlflow-server starts it, then to SQLite; the store is read back: nothing lost, errors retried or
+# reported, runs/s and points/s. make bench-tracking [WRITERS=8,16,32] [STORES=server,sqlite]
+WRITERS ?= 8,16,32
+STORES ?= server,sqlite
+bench-tracking: $(STAMP)
+	$(PY) -m harness.tracking_load --writers $(WRITERS) --stores $(STORES)
 
 # every real LIBERO task builds, starts from an init state and steps (slow: about 10 minutes for
 # all 130); make libero-check LIBERO_SUITES="libero_object libero_goal"
