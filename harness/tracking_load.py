@@ -44,12 +44,14 @@ TRACKING_LOG = "harness.tracking"  # its lock retries; urllib3.util.retry has th
 
 @dataclass(frozen=True)
 class Volume:
-    """What one writer logs. The defaults are one mw-quick ConSFT job per process: 9 tasks,
-    3 stream stages of 1500 steps, 4 per-step keys, its 6 output files."""
+    """What one writer logs. The defaults are one job per process in mw-quick's shape (a
+    ConSFT job: 9 tasks, 3 stream stages, 4 per-step keys, 40 params, its 6 output files) at a
+    fifth of its steps (300 a stage, not 1500), so that 32 writers take minutes, not a quarter
+    of an hour, on two cores; the rate per second is what the figures are for."""
 
     runs: int = 1  # jobs per process, one after another (a serial executor)
     stages: int = 3
-    steps: int = 1500  # training steps per stage
+    steps: int = 300  # training steps per stage (mw-quick: 1500)
     step_keys: int = 4
     tasks: int = 9  # foundation + stream: success and held-out loss per task and stage
     artifact_kb: int = 16  # size of each output file (the heat map is the largest, ~30 KB)
@@ -231,7 +233,9 @@ class LoadResult:
     retried: int  # retries that then succeeded or not (lock retries and HTTP retries)
     reported: list[str] = field(default_factory=list)  # writers' one-line errors
     unreported: list[str] = field(default_factory=list)  # writers that failed otherwise
-    wall_s: float = 0.0
+    wall_s: float = 0.0  # from the first writer's start to the last one's end
+    total_s: float = 0.0  # all of it: the store, the writers' start-up, the read-back
+    load: float = 0.0  # the machine's 1-minute load average when the writers finished
     problems: list[str] = field(default_factory=list)  # what the check found missing or extra
 
     @property
@@ -248,20 +252,22 @@ def run_load(kind: str, writers: int, volume: Volume, root: Path,
     thread once the writers have started (a test's injected failure)."""
     from harness.tracking_server import TrackingServer
 
-    if kind not in STORES:
-        raise RetainError(f"unknown tracking store {kind!r}; valid: {', '.join(STORES)}")
+    _check_kinds([kind])
     root.mkdir(parents=True, exist_ok=True)
+    began = time.time()
     store = Store(kind, root)
     if kind == "server":
         store.server = TrackingServer(root / "server", workers=server_workers).start()
     try:
         timing, reported, unreported = _run_writers(store, writers, volume, fault, env)
+        load = os.getloadavg()[0]
         result = check_store(store, writers, volume)
     finally:
         if store.server is not None:
             store.server.stop()
     result.retried = sum(t.get("retries", 0) for t in timing)
     result.reported, result.unreported = reported, unreported
+    result.load, result.total_s = load, time.time() - began
     if timing:
         result.wall_s = max(t["end"] for t in timing) - min(t["start"] for t in timing)
     return result
@@ -279,7 +285,7 @@ def _run_writers(store: Store, writers: int, volume: Volume, fault, env):
         procs.append(subprocess.Popen([*cmd, str(i)], stdin=subprocess.PIPE,
                                       stdout=subprocess.PIPE, stderr=err, text=True, env=env))
     try:
-        ready = [p.stdout.readline().strip() == "ready" for p in procs]
+        ready = [_wait_ready(p) for p in procs]
         for p in procs:  # all are ready (or failed): start them together
             if p.poll() is None:
                 p.stdin.write("go\n")
@@ -308,6 +314,14 @@ def _run_writers(store: Store, writers: int, volume: Volume, fault, env):
             "retry" in line.lower() for line in lines[:-1])  # retry notices, then the error
         (reported if one_line else unreported).append(f"writer {i}: {last}")
     return timing, reported, unreported
+
+
+def _wait_ready(proc: subprocess.Popen) -> bool:
+    """Until the writer says `ready` (True) or ends without saying it (False)."""
+    for line in proc.stdout:
+        if line.strip() == "ready":
+            return True
+    return False
 
 
 def check_store(store: Store, writers: int, volume: Volume) -> LoadResult:
@@ -396,15 +410,24 @@ def _check_artifacts(local: Path, key: str, writer: int, run: int, volume: Volum
 
 def table(results: list[LoadResult]) -> str:
     rows = ["| store | N | runs | metric points | artifacts | retried | reported | unreported "
-            "| wall s | runs/s | points/s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+            "| wall s | runs/s | points/s | load avg | all s |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         wall = max(r.wall_s, 1e-9)
         rows.append(
             f"| {r.store} | {r.writers} | {r.runs_found}/{r.runs_expected} "
             f"| {r.points_found}/{r.points_expected} | {r.artifacts_found}/{r.artifacts_expected} "
             f"| {r.retried} | {len(r.reported)} | {len(r.unreported)} | {r.wall_s:.1f} "
-            f"| {r.runs_found / wall:.2f} | {r.points_found / wall:,.0f} |")
+            f"| {r.runs_found / wall:.2f} | {r.points_found / wall:,.0f} | {r.load:.1f} "
+            f"| {r.total_s:.0f} |")
     return "\n".join(rows)
+
+
+def _check_kinds(kinds: list[str]) -> list[str]:
+    bad = [k for k in kinds if k not in STORES] or ([] if kinds else [""])
+    if bad:
+        raise RetainError(f"unknown tracking store {bad[0]!r}; valid: {', '.join(STORES)}")
+    return kinds
 
 
 def _ints(text: str) -> list[int]:
@@ -437,16 +460,13 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     try:
         counts = _ints(args.writers)
-        stores = [s for s in args.stores.split(",") if s]
-        bad = [s for s in stores if s not in STORES]
-        if bad or not stores:
-            raise RetainError(f"unknown tracking store {(bad or [''])[0]!r}; valid: "
-                              f"{', '.join(STORES)}")
+        stores = _check_kinds([s for s in args.stores.split(",") if s])
         volume = Volume(**{k: getattr(args, k) for k in asdict(Volume())})
         if min(asdict(volume).values()) < 1:
             raise RetainError(f"bad volume {asdict(volume)}: every count must be at least 1")
         print(f"tracking load: {volume.text()}; writers log as fast as the store takes them; "
               f"{os.cpu_count()} cores", flush=True)
+        print("\n".join(table([]).splitlines()), flush=True)
         results = []
         for kind in stores:
             for n in counts:

@@ -50,7 +50,7 @@ class TrackingServer:
     def backend(self) -> str:
         return f"sqlite:///{self.root.resolve() / 'mlflow.db'}"
 
-    def start(self, timeout: float = 120.0) -> TrackingServer:
+    def start(self, timeout: float = 300.0) -> TrackingServer:
         """Start it (again, on the same port and store) and wait until it answers."""
         self.root.mkdir(parents=True, exist_ok=True)
         cmd = [*_mlflow_command(), "server", "--backend-store-uri", self.backend,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.tracking_load import Store, Volume, run_load
+from harness.tracking_load import Store, Volume, main, run_load
 
 SMALL = Volume(runs=1, stages=2, steps=150, step_keys=4, tasks=3, artifact_kb=4)
 
@@ -71,12 +71,19 @@ def test_server_gone_for_good_is_reported_in_one_line_and_nothing_else_is_lost(t
     assert {_writer(p) for p in result.problems} <= {_writer(r) for r in result.reported}
 
 
-@pytest.mark.parametrize("kind", ["ftp", ""])
-def test_an_unknown_store_is_refused_in_one_line(tmp_path, kind):
-    from harness.errors import RetainError
-
-    with pytest.raises(RetainError, match="valid: server, sqlite"):
-        run_load(kind, 1, SMALL, tmp_path)
+@pytest.mark.parametrize("args, says", [
+    (["--stores", "server,ftp"], "unknown tracking store 'ftp'; valid: server, sqlite"),
+    (["--stores", ","], "unknown tracking store ''; valid: server, sqlite"),
+    (["--writers", "8,0"], "bad writer counts '8,0': expected positive integers"),
+    (["--writers", "many"], "bad writer counts 'many'"),
+    (["--steps", "0"], "every count must be at least 1"),
+])
+def test_bad_bench_settings_are_refused_in_one_line_before_anything_starts(tmp_path, capsys,
+                                                                          args, says):
+    assert main([*args, "--root", str(tmp_path / "load")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and says in err
+    assert not (tmp_path / "load").exists()
 
 
 @pytest.mark.slow
