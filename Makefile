@@ -17,7 +17,7 @@ OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v)
 quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
 .PHONY: bench compare sweep study report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
-	bench-eval libero-check test-slow gpu-check
+	bench-eval bench-tracking libero-check test-slow gpu-check
 
 $(STAMP): requirements.lock pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -73,6 +73,14 @@ bench-eval: $(STAMP)
 #   On a device machine without the project's packages: docs/performance.md, "The GPU check"
 gpu-check: $(STAMP)
 	$(PY) -m harness.gpu_check $(call quote,$(filter device=% parts=%,$(OVERRIDES)))
+
+# N processes log what a benchmark job logs, all at once, to one loopback `mlflow server` started as
+# mlflow-server starts it, then to SQLite; the store is read back: nothing lost, errors retried or
+# reported, runs/s and points/s. make bench-tracking [WRITERS=8,16,32] [STORES=server,sqlite]
+WRITERS ?= 8,16,32
+STORES ?= server,sqlite
+bench-tracking: $(STAMP)
+	$(PY) -m harness.tracking_load --writers $(WRITERS) --stores $(STORES)
 
 # every real LIBERO task builds, starts from an init state and steps (slow: about 10 minutes for
 # all 130); make libero-check LIBERO_SUITES="libero_object libero_goal"

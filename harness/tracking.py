@@ -6,6 +6,10 @@ processes logging to one SQLite file do not race to create it.
 
 Runs are found again by a key tag (`retain.key`): a job that is retried or rerun after a kill
 continues its own run instead of leaving a RUNNING one behind and starting another.
+
+Many writers (docs/reliability.md, `make bench-tracking`): an HTTP error (a server restarting, a
+503 while its store is busy) is retried by MLflow's own retry settings, about a minute; a SQLite
+lock held past MLflow's busy timeout is retried here, a line each. What still fails is one line.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import fcntl
 import logging
 import os
 import platform
+import random
 import subprocess
 import sys
 import time
@@ -29,6 +34,12 @@ PACKAGES = ("torch", "numpy", "mujoco", "metaworld", "robosuite", "mlflow", "h5p
 _MAX_BATCH = 1000  # MLflow's limit on metrics per log_batch call
 KEY_TAG = "retain.key"  # a job's (or an invocation's) identity: a rerun continues its run
 COMMITS_TAG = "retain.git_commits"  # every commit that ran part of a run, in order
+# MLflow's HTTP retries (urllib3's, on connection errors, timeouts, 408/429/5xx): backoff 0, 2, 4,
+# 8, 16, 32 s (+ up to 1 s jitter each), enough for a server restart; a user's own settings win
+HTTP_RETRY = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "6", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1",
+              "MLFLOW_HTTP_REQUEST_BACKOFF_JITTER": "1", "MLFLOW_HTTP_REQUEST_TIMEOUT": "60"}
+LOCK_WAIT_S = 300.0  # how long a SQLite store may stay locked before a call gives up
+log = logging.getLogger(__name__)
 
 
 def tracking_uri(results_dir: str) -> str:
@@ -83,15 +94,32 @@ def git_commit() -> str:
 
 def quiet_mlflow() -> None:
     """Before the first MLflow client: no warnings or INFO lines (table creation) that say nothing
-    about the run, and no retry storm against a dead server, which then fails in one line."""
+    about the run, and bounded HTTP retries (HTTP_RETRY). MLflow logs a traceback for every SQLite
+    error it raises; the lock errors among them are retried here in one line, the rest raised."""
     warnings.filterwarnings("ignore", module="mlflow")
-    os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
-    os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
+    for name, value in HTTP_RETRY.items():
+        os.environ.setdefault(name, value)
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     import mlflow  # noqa: F401 -- it sets its loggers' levels when imported: lower them after
 
     for name in ("mlflow", "alembic"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
+
+
+def check_reachable(uri: str) -> None:
+    """A server that does not answer at the start is a wrong address: say so at once, not after
+    the minute of retries meant for one that restarts mid-run."""
+    if not uri.startswith(("http://", "https://")):
+        return
+    import requests
+
+    try:  # any answer, even a late one, says a server is there
+        requests.get(f"{uri.rstrip('/')}/health", timeout=(5, 60))
+    except requests.ReadTimeout:
+        pass
+    except requests.RequestException as exc:
+        raise RetainError(f"tracking server {uri} is unreachable: {_first_line(exc)}") from None
 
 
 def finished_keys(client, experiment_id: str, keys) -> set[str]:
@@ -112,9 +140,12 @@ class Tracker:
         results.mkdir(parents=True, exist_ok=True)
         self.uri = uri or tracking_uri(results_dir)
         # Creating the client creates the SQLite schema: processes starting together take turns.
+        check_reachable(self.uri)
+        if self.uri.startswith("sqlite"):  # seconds of imports: not while others wait on the lock
+            import mlflow.store.tracking.sqlalchemy_store  # noqa: F401
         with open(results / ".mlflow.lock", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
-            self.client = _RetryOnLock(MlflowClient(tracking_uri=self.uri))
+            self.client = _Retrying(MlflowClient(tracking_uri=self.uri), self.uri)
             self.experiment_id = self._experiment(experiment, results.resolve() / "mlartifacts")
 
     def _experiment(self, name: str, artifact_root: Path) -> str:
@@ -126,13 +157,15 @@ class Tracker:
                     return found.experiment_id
                 location = None if self.uri.startswith("http") else artifact_root.as_uri()
                 return self.client.create_experiment(name, artifact_location=location)
+            except RetainError:
+                raise
             except Exception as exc:  # noqa: BLE001 - MLflow raises many types for one cause
                 text = str(exc)
                 if "already exists" in text or "UNIQUE constraint" in text:
-                    time.sleep(0.2 * (attempt + 1))  # another process created it (locks: _RetryOnLock)
+                    time.sleep(0.2 * (attempt + 1))  # another process created it (locks: _Retrying)
                     continue
-                first = text.splitlines()[0] if text else type(exc).__name__
-                raise RetainError(f"tracking server {self.uri} is unreachable: {first[:200]}") from None
+                raise RetainError(f"tracking server {self.uri} is unreachable: "
+                                  f"{_first_line(exc)}") from None
         raise RetainError(f"could not create MLflow experiment {name!r} at {self.uri}")
 
     def start_run(self, name: str, parent_id: str | None = None, tags: dict[str, str] | None = None) -> str:
@@ -155,7 +188,9 @@ class Tracker:
                                         order_by=["attribute.start_time DESC"], max_results=1)
         tags = {**(tags or {}), KEY_TAG: key}
         if not found:
-            return self.start_run(name, parent_id, {**tags, COMMITS_TAG: commit})
+            run_id = self.start_run(name, parent_id, {**tags, COMMITS_TAG: commit})
+            self._drop_twins(key, run_id)
+            return run_id
         run = found[0]
         seen = run_commits(run.data.params, run.data.tags)
         tags[COMMITS_TAG] = ",".join(seen if commit in seen else [*seen, commit])
@@ -164,6 +199,15 @@ class Tracker:
             tags["mlflow.parentRunId"] = parent_id
         self.set_tags(run.info.run_id, tags)
         return run.info.run_id
+
+    def _drop_twins(self, key: str, run_id: str) -> None:
+        """Delete other runs with `key` made by this creation: a create_run retried after its
+        answer was lost (the server went down after storing it) makes two, and the first would
+        stay RUNNING with nothing logged."""
+        for run in self.client.search_runs([self.experiment_id],
+                                           filter_string=f"tags.`{KEY_TAG}` = '{key}'"):
+            if run.info.run_id != run_id:
+                self.client.delete_run(run.info.run_id)
 
     def commits(self, run_id: str) -> list[str]:
         """Every commit that ran part of the run, first to last."""
@@ -229,25 +273,52 @@ class BatchedMetrics:
             self.rows = []
 
 
-class _RetryOnLock:
-    """Calls through to MlflowClient, retrying while another process holds the SQLite lock."""
+class _Retrying:
+    """Calls through to MlflowClient. A SQLite lock held past MLflow's busy timeout (20 s) is
+    retried with jittered backoff, a line each, for up to `lock_wait` seconds; HTTP errors were
+    retried inside MLflow already. A call that still fails raises a one-line RetainError naming
+    the store and the call; any other error is raised as it is."""
 
-    def __init__(self, client, attempts: int = 40):
-        self._client, self._attempts = client, attempts
+    def __init__(self, client, uri: str, lock_wait: float = LOCK_WAIT_S):
+        self._client, self._uri, self._lock_wait = client, uri, lock_wait
 
     def __getattr__(self, name):
         method = getattr(self._client, name)
+        if not callable(method):
+            return method
 
         def call(*args, **kwargs):
-            for attempt in range(self._attempts):
+            start, tries = time.monotonic(), 0
+            while True:
+                tries += 1
                 try:
                     return method(*args, **kwargs)
                 except Exception as exc:  # noqa: BLE001 - SQLAlchemy's OperationalError, wrapped
-                    if "locked" not in str(exc) or attempt == self._attempts - 1:
+                    text = str(exc)
+                    if "API request to" in text and "failed with" in text:
+                        raise RetainError(
+                            f"tracking server {self._uri}: {name} failed after "
+                            f"{os.environ.get('MLFLOW_HTTP_REQUEST_MAX_RETRIES')} retries: "
+                            f"{_first_line(exc)}") from None
+                    if "is locked" not in text:
                         raise
-                    time.sleep(min(2.0, 0.05 * 2**attempt))
+                    waited = time.monotonic() - start
+                    delay = min(5.0, 0.1 * 2 ** tries) * random.uniform(0.5, 1.5)
+                    if waited + delay > self._lock_wait:
+                        raise RetainError(
+                            f"tracking store {self._uri} stayed locked for {waited:.0f}s ({name}, "
+                            f"{tries} tries): another process holds its write lock; for many "
+                            f"writers use `make mlflow-server`") from None
+                    log.warning("[retain] tracking: database is locked during %s; retry %d in "
+                                "%.1fs", name, tries, delay)
+                    time.sleep(delay)
 
         return call
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return (text.splitlines()[0] if text else type(exc).__name__)[:200]
 
 
 def metric_key(key: str) -> str:
