@@ -66,6 +66,12 @@ bench-eval: $(STAMP)
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
 		$(if $(device),--device $(device))
 
+# a benchmark's demos as a LeRobotDataset v3.0 folder (docs/lerobot.md):
+#   make lerobot-export BENCH=libero-quick out=exports/libero-quick [cameras=true] [images=png]
+.PHONY: lerobot-export
+lerobot-export: $(STAMP)
+	$(PY) -m harness lerobot-export $(call quote,$(OVERRIDES))
+
 # every real LIBERO task builds, starts from an init state and steps (slow: about 10 minutes for
 # all 130); make libero-check LIBERO_SUITES="libero_object libero_goal"
 libero-check: $(STAMP)

@@ -74,6 +74,13 @@ class BenchConfig:
     jobs: int = 0  # jobs at once; 0: as many as the cores allow given each job's workers
     device: str = "cpu"  # cpu, cuda or auto (CUDA when present); CUDA trains in bf16 autocast
     compile: bool = False  # torch.compile the policy (worth it on a GPU)
+    # a LeRobot dataset folder as demos_dir (docs/lerobot.md): the dataset's features for Retain's
+    # keys, "state:observation.state,agentview_rgb:image" (else the common names); the suite's
+    # tasks to the dataset's, "TASK:TASK_INDEX" or "TASK:text" (else by instruction); whether its
+    # images are turned 180 degrees from the suite's renders (LIBERO's community sets are)
+    lerobot_keys: str = ""
+    lerobot_tasks: str = ""
+    lerobot_rotate_images: bool = False
 
     def workers(self) -> int:
         return self.eval_workers if self.eval_workers > 0 else (os.cpu_count() or 1)
@@ -113,6 +120,7 @@ NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eva
 # key leaves them out (earlier checkpoints still resume) and a report reads a run that never
 # logged them as having it (its rows keep their labels)
 QUIET_DEFAULTS: dict[str, Any] = {"spatial_episodes": 0, "eval_shards": 2, "foundation_eval_every": 1}
+QUIET_DEFAULTS.update(lerobot_keys="", lerobot_tasks="", lerobot_rotate_images=False)  # LeRobot's
 
 
 def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:
