@@ -40,7 +40,10 @@ def test_proprio_state_is_libero_state_in_the_community_layout():
     np.testing.assert_allclose(short[6:], full[7:9])
 
 
-def test_cameras_and_proprioception_train_and_evaluate_from_a_lerobot_folder(tmp_path):
+def test_cameras_and_proprioception_train_and_evaluate_from_a_lerobot_folder(tmp_path,
+                                                                            monkeypatch):
+    """Benchmark libero-lerobot-quick (pi0, tiny), on a v3.0 folder laid out as the community's
+    LIBERO sets (8-D state, both cameras as video, turned 180 degrees), one task of each stage."""
     from harness.cli import main
 
     suite = get_suite("libero-proprio")
@@ -52,17 +55,20 @@ def test_cameras_and_proprioception_train_and_evaluate_from_a_lerobot_folder(tmp
                        {"state": rng.normal(size=(n, 8)).astype(np.float32),
                         "agentview_rgb": images, "eye_in_hand_rgb": images[:, ::-1].copy()}, -1)
 
-    write_dataset(tmp_path / "libero_lerobot",
-                  [(suite.instruction(t), [episode(6) for _ in range(3)])
-                   for t in (FOUNDATION, STREAM)], fps=20, rotate_images=True)
-    code = main(["bench", "BENCH=libero-quick", "PROFILE=tiny", "suite=libero-proprio",
-                 f"foundation_tasks={FOUNDATION}", f"stream_tasks={STREAM}", "cameras=true",
-                 f"image_size={SIZE}", f"demos_dir={tmp_path / 'libero_lerobot'}",
-                 "lerobot_rotate_images=true", "demos_per_task=2", "heldout_demos_per_task=1",
-                 "eval_episodes=1", "executor=serial", "eval_workers=1",
-                 f"results_dir={tmp_path / 'results'}", f"cache_dir={tmp_path / 'cache'}"])
+    write_dataset(tmp_path / "ds", [(suite.instruction(t), [episode(6) for _ in range(4)])
+                                    for t in (FOUNDATION, STREAM)], fps=20, rotate_images=True)
+    monkeypatch.chdir(tmp_path)  # relative folders keep the run's label (its directory) short
+    code = main(["bench", "BENCH=libero-lerobot-quick", "PROFILE=tiny", "demos_dir=ds",
+                 f"foundation_tasks={FOUNDATION}", f"stream_tasks={STREAM}", f"image_size={SIZE}",
+                 "eval_episodes=1", "executor=serial", "eval_workers=1", "results_dir=results",
+                 "cache_dir=cache"])
     assert code == 0
     metrics = json.loads(next((tmp_path / "results").rglob("metrics.json")).read_text())
-    assert 0.0 <= metrics["foundation_success_stage0"] <= 1.0  # rolled out in LIBERO
+    assert 0.0 <= metrics["metrics"]["foundation_success_stage0"] <= 1.0  # rolled out in LIBERO
     cached = sorted((tmp_path / "cache/demos/libero-proprio").glob("*.hdf5"))
     assert len(cached) == 4  # two tasks, two splits, read from the folder
+    from harness.stages import load_checkpoint
+
+    policy = load_checkpoint(next((tmp_path / "cache/foundation").rglob("policy.pt")))["policy"]
+    assert policy["state_norm.mean"].shape == (8,)  # the policy read the 8-D state
+    assert any(k.startswith("vision.") for k in policy)  # and the cameras
