@@ -7,7 +7,7 @@ physical-intelligence/libero set's `actions`, `state`, `image`, `wrist_image`);
 `lerobot_keys=state:observation.state,agentview_rgb:observation.images.front` overrides them.
 Their widths must be the suite's (`suite=libero-proprio` for LIBERO's 8-D proprioception) and
 the images `image_size` square; `lerobot_rotate_images=true` turns images 180 degrees (LIBERO's
-community sets are stored so, as openpi and LeRobot rotate LIBERO's renders).
+community sets are stored so; openpi's LIBERO evaluation turns the renders likewise).
 
 Tasks. A suite task's episodes are those whose task text is its instruction (case, spacing and
 a final period aside), or the text or task_index `lerobot_tasks=task:3,other:pick up the ...`
