@@ -30,7 +30,13 @@ import numpy as np
 from harness.config import BenchConfig
 from harness.demos import Episode
 from harness.errors import RetainError
-from harness.lerobot.frames import TIME_TOLERANCE, FrameError, decode_png, decode_video
+from harness.lerobot.frames import (
+    TIME_TOLERANCE,
+    FrameError,
+    SegmentError,
+    decode_png,
+    decode_video,
+)
 from harness.lerobot.layout import (
     CAMERA_DTYPES,
     EpisodeEntry,
@@ -218,7 +224,7 @@ def _read_file(layout: Layout, keys: dict[str, str], path: Path, group: list[Epi
     filters = [("episode_index", "in", [e.index for e in group])] if v3 else None
     table = read_parquet(path, columns, f"episode {group[0].index}'s frames", filters)
     episode_of = table.column("episode_index").to_numpy()
-    out = {}
+    parts: dict[int, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
     for entry in group:
         rows = np.flatnonzero(episode_of == entry.index) if v3 else np.arange(table.num_rows)
         _check_frames(table, path, entry, rows)
@@ -231,13 +237,15 @@ def _read_file(layout: Layout, keys: dict[str, str], path: Path, group: list[Epi
             if np.abs(times - np.arange(entry.length) / layout.fps).max() > TIME_TOLERANCE:
                 raise bad(path, f"episode {entry.index}'s timestamps are not frame_index / fps "
                                 f"({layout.fps:g}); its video frames cannot be matched")
-        for key in videos:
-            obs[key] = _video(layout, entry, keys[key], image_size)
-        if rotate:
+        parts[entry.index] = _vectors(table, keys["actions"], take, path), obs
+    for key in videos:
+        for entry, frames in _videos(layout, group, keys[key], image_size):
+            parts[entry.index][1][key] = frames
+    if rotate:
+        for _, obs in parts.values():
             for key in images + videos:
                 obs[key] = np.ascontiguousarray(obs[key][:, ::-1, ::-1])
-        out[entry.index] = Episode(_vectors(table, keys["actions"], take, path), obs, seed=-1)
-    return out
+    return {index: Episode(actions, obs, seed=-1) for index, (actions, obs) in parts.items()}
 
 
 def _check_frames(table, path: Path, entry: EpisodeEntry, rows: np.ndarray) -> None:
@@ -303,15 +311,22 @@ def _pngs(table, name: str, take, path: Path, size: int) -> np.ndarray:
     return np.stack(images)
 
 
-def _video(layout: Layout, entry: EpisodeEntry, feature: str, size: int) -> np.ndarray:
-    span = entry.videos[feature]
-    if not span.path.is_file():
-        raise bad(span.path, f"missing; expected episode {entry.index}'s {feature} video")
-    try:
-        frames = decode_video(span.path, span.start, entry.length, layout.fps)
-    except FrameError as err:
-        raise bad(span.path, f"{err}; expected episode {entry.index}'s {feature} frames") from None
-    if frames.shape[1:] != (size, size, 3):
-        raise bad(span.path, f"frames are {frames.shape[2]}x{frames.shape[1]}; expected "
-                             f"{size}x{size} as info.json says")
-    return frames
+def _videos(layout: Layout, entries: list[EpisodeEntry], feature: str, size: int):
+    """(entry, frames) for each entry: each video file decoded once for all its episodes."""
+    by_file: dict[Path, list[EpisodeEntry]] = {}
+    for entry in entries:
+        by_file.setdefault(entry.videos[feature].path, []).append(entry)
+    for path, group in by_file.items():
+        if not path.is_file():
+            raise bad(path, f"missing; expected episode {group[0].index}'s {feature} video")
+        try:
+            frames = decode_video(path, [(e.videos[feature].start, e.length) for e in group],
+                                  layout.fps)
+        except SegmentError as err:
+            raise bad(path, f"{err}; expected episode {group[err.segment].index}'s {feature} "
+                            "frames") from None
+        for entry, images in zip(group, frames):
+            if images.shape[1:] != (size, size, 3):
+                raise bad(path, f"frames are {images.shape[2]}x{images.shape[1]}; expected "
+                                f"{size}x{size} as info.json says")
+            yield entry, images
