@@ -81,6 +81,11 @@ WRITERS ?= 8,16,32
 STORES ?= server,sqlite
 bench-tracking: $(STAMP)
 	$(PY) -m harness.tracking_load --writers $(WRITERS) --stores $(STORES)
+# a benchmark's demos as a LeRobotDataset v3.0 folder (docs/lerobot.md):
+#   make lerobot-export BENCH=libero-quick out=exports/libero-quick [cameras=true] [images=png]
+.PHONY: lerobot-export
+lerobot-export: $(STAMP)
+	$(PY) -m harness lerobot-export $(call quote,$(OVERRIDES))
 
 # every real LIBERO task builds, starts from an init state and steps (slow: about 10 minutes for
 # all 130); make libero-check LIBERO_SUITES="libero_object libero_goal"

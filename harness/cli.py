@@ -378,9 +378,15 @@ def _study(args: list[str]) -> int:
     return study(args)
 
 
+def _lerobot_export(args: list[str]) -> int:
+    from harness.lerobot.export import main as export_main
+
+    return export_main(args)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    commands = {"bench": bench, "study": _study}
+    commands = {"bench": bench, "study": _study, "lerobot-export": _lerobot_export}
     if not argv or argv[0] not in commands:
         print(f"usage: python -m harness {{{','.join(commands)}}} [KEY=VALUE ...]", file=sys.stderr)
         return 2

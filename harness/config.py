@@ -118,6 +118,13 @@ class BenchConfig:
 
     def all_tasks(self) -> list[str]:
         return self.foundation_tasks + self.stream_tasks
+    # a LeRobot dataset folder as demos_dir (docs/lerobot.md): the dataset's features for Retain's
+    # keys, "state:observation.state,agentview_rgb:image" (else the common names); the suite's
+    # tasks to the dataset's, "TASK:TASK_INDEX" or "TASK:text" (else by instruction); whether its
+    # images are turned 180 degrees from the suite's renders (LIBERO's community sets are)
+    lerobot_keys: str = ""
+    lerobot_tasks: str = ""
+    lerobot_rotate_images: bool = False
 
     def workers(self) -> int:
         return self.eval_workers if self.eval_workers > 0 else (os.cpu_count() or 1)
@@ -164,7 +171,8 @@ NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eva
 QUIET_DEFAULTS: dict[str, Any] = {
     "spatial_episodes": 0, "eval_shards": 2, "foundation_eval_every": 1, "stage_sizes": [],
     "until_success": 0.0, "check_every": 250, "check_episodes": 10, "adam_beta1": 0.9,
-    "adam_beta2": 0.999, "adam_eps": 1e-8, "heldout_groups": {}}
+    "adam_beta2": 0.999, "adam_eps": 1e-8, "heldout_groups": {}, "lerobot_keys": "",
+    "lerobot_tasks": "", "lerobot_rotate_images": False}
 
 
 def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:

@@ -86,22 +86,35 @@ def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
     data = BenchmarkData({}, {}, {})
     for task, embedding, tokens in zip(tasks, embeddings, token_ids):
         data.instructions[task] = {"instruction": embedding, "instruction_tokens": tokens}
-        if cfg.demos_dir:
-            splits = user_demos(cfg, suite, task)
-        else:
-            splits = {split: load_or_generate(suite, demo_spec(cfg, suite, task, split), cache,
-                                              cfg.progress) for split in ("demo", "heldout")}
+        splits = task_demos(cfg, suite, task)
         data.train[task] = chunk_episodes(splits["demo"], task, embedding, cfg.chunk_size, tokens)
         data.heldout[task] = chunk_episodes(splits["heldout"], task, embedding, cfg.chunk_size,
                                             tokens)
     return data
 
 
+def task_demos(cfg: BenchConfig, suite: Suite, task: str) -> dict[str, list[Episode]]:
+    """A task's "demo" and "heldout" episodes: the user's (demos_dir) or the expert's, cached."""
+    if cfg.demos_dir:
+        return user_demos(cfg, suite, task)
+    return {split: load_or_generate(suite, demo_spec(cfg, suite, task, split),
+                                    Path(cfg.cache_dir), cfg.progress)
+            for split in ("demo", "heldout")}
+
+
 def user_file(cfg: BenchConfig, suite: Suite, task: str) -> str:
-    """The user's LIBERO file for `task` in `demos_dir`, with its size and modification time:
-    part of the demo-cache key, so a replaced file is read again."""
-    if suite.name != "libero":
-        raise RetainError(f"demos_dir reads LIBERO dataset files; suite {suite.name!r} makes its own")
+    """The user's LIBERO file for `task` in `demos_dir`, with its size and modification time,
+    or a LeRobot dataset's state for the task (any suite; harness/lerobot): part of the
+    demo-cache key, so a replaced file is read again."""
+    from harness.lerobot.layout import is_dataset_folder
+
+    if is_dataset_folder(cfg.demos_dir):
+        from harness.lerobot.reader import source
+
+        return source(cfg, suite, task)
+    if not suite.name.startswith("libero"):
+        raise RetainError(f"demos_dir reads LIBERO dataset files or a LeRobot dataset folder; "
+                          f"{cfg.demos_dir} is neither, and suite {suite.name!r} makes its own")
     from suites.libero.files import task_file
 
     try:
@@ -113,18 +126,50 @@ def user_file(cfg: BenchConfig, suite: Suite, task: str) -> str:
 
 
 def user_demos(cfg: BenchConfig, suite: Suite, task: str) -> dict[str, list[Episode]]:
-    """A task's demos from the user's LIBERO dataset files (`demos_dir`, matched by task name):
-    the last `heldout_demos_per_task` are held out, the first `demos_per_task` of the rest train.
-    Rebuilding the state from a file's sim states takes seconds, so the result is cached like
-    generated demos (keyed by the file's path, size and time)."""
-    from suites.libero.files import read_libero_file
+    """A task's demos from the user's LIBERO dataset files (`demos_dir`, matched by task name)
+    or LeRobot dataset folder (matched by instruction): the last `heldout_demos_per_task` are
+    held out, the first `demos_per_task` of the rest train. Rebuilding the state from a LIBERO
+    file's sim states, or decoding a dataset's videos, takes seconds, so the result is cached
+    like generated demos (keyed by the files' paths, sizes and times)."""
+    from harness.lerobot.layout import is_dataset_folder
 
     specs = {split: demo_spec(cfg, suite, task, split) for split in ("demo", "heldout")}
     paths = {split: Path(cfg.cache_dir) / "demos" / suite.name / spec.filename()
              for split, spec in specs.items()}
     if all(p.exists() for p in paths.values()):
         return {split: read_demo_file(paths[split], spec)[1] for split, spec in specs.items()}
-    path = Path(specs["demo"].source.rsplit(":", 2)[0])
+    splits = (lerobot_demos(cfg, suite, task) if is_dataset_folder(cfg.demos_dir)
+              else libero_file_demos(cfg, suite, task, specs["demo"].source))
+    for split, spec in specs.items():
+        write_demo_file(paths[split], splits[split], spec, suite.instruction(task))
+    return splits
+
+
+def split_demos(items: list, cfg: BenchConfig, where, task: str) -> dict[str, list]:
+    """The last `heldout_demos_per_task` are held out, the first `demos_per_task` of the rest
+    train."""
+    held = cfg.heldout_demos_per_task
+    if len(items) <= held:
+        raise RetainError(f"{where} holds {len(items)} demos of task {task!r}; it needs more than "
+                          f"heldout_demos_per_task={held}")
+    return {"demo": items[:len(items) - held][:cfg.demos_per_task],
+            "heldout": items[len(items) - held:]}
+
+
+def lerobot_demos(cfg: BenchConfig, suite: Suite, task: str) -> dict[str, list[Episode]]:
+    """A task's demos from a LeRobot dataset folder: only the episodes used are decoded."""
+    from harness.lerobot.reader import dataset, read_episodes, task_entries
+
+    chosen = split_demos(task_entries(cfg, suite, task), cfg, dataset(cfg).episodes_file, task)
+    return {split: read_episodes(cfg, suite, entries) for split, entries in chosen.items()}
+
+
+def libero_file_demos(cfg: BenchConfig, suite: Suite, task: str,
+                      source: str) -> dict[str, list[Episode]]:
+    """A task's demos from its LIBERO HDF5 file (`source`, as `user_file` gives it)."""
+    from suites.libero.files import read_libero_file
+
+    path = Path(source.rsplit(":", 2)[0])
     env = suite.make_env(task)
     try:
         episodes = read_libero_file(path, env, cfg.cameras, cfg.image_size).episodes
@@ -132,13 +177,5 @@ def user_demos(cfg: BenchConfig, suite: Suite, task: str) -> dict[str, list[Epis
         raise RetainError(str(err)) from None
     finally:
         env.close()
-    held = cfg.heldout_demos_per_task
-    if len(episodes) <= held:
-        raise RetainError(f"{path} holds {len(episodes)} demos; task {task!r} needs more than "
-                          f"heldout_demos_per_task={held}")
-    as_episodes = [Episode(e["actions"], e["obs"], seed=-1) for e in episodes]
-    splits = {"demo": as_episodes[:len(as_episodes) - held][:cfg.demos_per_task],
-              "heldout": as_episodes[len(as_episodes) - held:]}
-    for split, spec in specs.items():
-        write_demo_file(paths[split], splits[split], spec, suite.instruction(task))
-    return splits
+    return split_demos([Episode(e["actions"], e["obs"], seed=-1) for e in episodes], cfg, path,
+                       task)

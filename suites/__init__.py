@@ -20,6 +20,7 @@ _SUITES: dict[str, str] = {
     # name -> module that defines and registers it; imported lazily (simulators are slow to load)
     "metaworld": "suites.metaworld",
     "libero": "suites.libero",
+    "libero-proprio": "suites.libero.proprio",  # LIBERO's community datasets' 8-D state
     "bimanual": "suites.bimanual",
 }
 _FACTORIES: dict[str, Callable[[], Suite]] = {}
