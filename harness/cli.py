@@ -80,7 +80,7 @@ def plan(args: list[str]) -> Plan:
     base = base_config(args)
     try:
         suite = get_suite(cfg.suite)
-        for task in cfg.foundation_tasks + cfg.stream_tasks:
+        for task in cfg.all_tasks():
             suite.check_task(task)
     except UnknownName as exc:
         raise RetainError(str(exc)) from None

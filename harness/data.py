@@ -60,7 +60,7 @@ def missing_demo_jobs(cfg: BenchConfig, suite: Suite) -> list[DemoJob]:
     """The demo files the expert still has to make (none where demos come from demos_dir)."""
     if cfg.demos_dir:
         return []
-    specs = [demo_spec(cfg, suite, task, split) for task in cfg.foundation_tasks + cfg.stream_tasks
+    specs = [demo_spec(cfg, suite, task, split) for task in cfg.all_tasks()
              for split in ("demo", "heldout")]
     return [DemoJob(suite.name, spec, cfg.cache_dir) for spec in specs
             if not cached_demo_path(Path(cfg.cache_dir), spec).exists()]
@@ -74,7 +74,7 @@ def make_demo_file(job: DemoJob) -> int:
 
 
 def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
-    tasks = cfg.foundation_tasks + cfg.stream_tasks
+    tasks = cfg.all_tasks()
     cache = Path(cfg.cache_dir)
     if cfg.demos_dir:  # every task's file found before any long work
         for task in tasks:

@@ -72,7 +72,7 @@ def foundation_key(cfg: BenchConfig, suite: Suite, seed: int) -> str:
 
 
 def stage0_key(cfg: BenchConfig, suite: Suite) -> str:
-    tasks = cfg.foundation_tasks + cfg.stream_tasks
+    tasks = cfg.all_tasks()
     spec = {"eval": [cfg.eval_episodes, cfg.max_episode_steps, cfg.n_action_steps, cfg.eval_shards],
             "heldout": [demo_spec(cfg, suite, t, "heldout").key() for t in tasks]}
     if cfg.spatial_episodes > 0:  # off, the key (and the cached record) is as before the probe

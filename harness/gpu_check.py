@@ -526,7 +526,7 @@ def prepare(root: Path = ROOT) -> list[Path]:
 
     benchmark = load_benchmark("mw-quick")
     suite = get_suite(benchmark.suite)
-    texts = [suite.instruction(t) for t in benchmark.foundation_tasks + benchmark.stream_tasks]
+    texts = [suite.instruction(t) for t in benchmark.all_tasks()]
     embed_instructions(texts, root / "cache" / "instructions")
     tokenize_instructions(texts, root / "cache" / "instructions")
     out = root / "cache" / "gpu-check"

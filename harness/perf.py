@@ -332,7 +332,7 @@ def measure_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200,
 
     benchmark = load_benchmark(bench)
     suite = get_suite(benchmark.suite)
-    tasks = benchmark.foundation_tasks + benchmark.stream_tasks
+    tasks = benchmark.all_tasks()
     tasks = tasks[:n_tasks] if n_tasks > 0 else tasks
     eps = evaluation_episodes(suite, tasks, episodes, max_steps)
     settings = EvalSettings(episodes, max_steps, n_action_steps=4, cameras=cameras,

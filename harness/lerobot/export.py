@@ -52,7 +52,7 @@ def export(args: list[str]) -> Written:
     cfg = resolve(rest)
     try:
         suite = get_suite(cfg.suite)
-        tasks = [suite.check_task(t) for t in cfg.foundation_tasks + cfg.stream_tasks]
+        tasks = [suite.check_task(t) for t in cfg.all_tasks()]
     except UnknownName as err:
         raise RetainError(str(err)) from None
     fps = own.get("fps") or CONTROL_FPS.get(suite.name)

@@ -138,7 +138,7 @@ def roundtrip(args: list[str]) -> bool:
               f"cache {t_direct:.1f}s, export {t_export:.1f}s, read back {t_read:.1f}s")
         same = True
         for split in ("train", "heldout"):
-            for task in cfg.foundation_tasks + cfg.stream_tasks:
+            for task in cfg.all_tasks():
                 a, b = getattr(direct, split)[task], getattr(read, split)[task]
                 parts = {f"obs/{k}": (a.obs[k], b.obs.get(k)) for k in a.obs}
                 parts.update({"actions": (a.actions, b.actions),

@@ -89,9 +89,7 @@ def plasticity_retention(path: Path, summaries: list[RowSummary], benchmark: str
     ax.set_xlabel("plasticity (mean success on each stream task right after its stage)")
     ax.set_ylabel("retention (foundation success after the last stage)")
     ax.set_title(f"{benchmark}: plasticity vs retention (up and right is better)", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
-    fig.tight_layout()
+    _legend_right(fig, ax)
     label_points(ax, labelled)
     save(fig, path)
 
@@ -302,11 +300,16 @@ def spatial_retention(path: Path, summaries: list[RowSummary], benchmark: str) -
     ax.set_ylabel("spatial retention (the same, from widened initial states)")
     ax.set_title(f"{benchmark}: spatial probe (arrows start at stage 0; below the diagonal: "
                  "worse beyond the demos' range)", fontsize=10)
+    _legend_right(fig, ax)
+    label_points(ax, labelled)
+    save(fig, path)
+
+
+def _legend_right(fig, ax) -> None:
+    """The grid, and the legend outside the axes on the right, as every scatter and curve here."""
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
-    label_points(ax, labelled)
-    save(fig, path)
 
 
 def _segments(series: SeriesSummary):
@@ -349,9 +352,7 @@ def sparsity_progress(path: Path, summaries: list[RowSummary], benchmark: str) -
     ax.set_ylabel("Eq. 8 sparsity: share of scalars\nwith |theta - theta_0| / |theta_0| < 1e-3")
     ax.set_title(f"{benchmark}: how much of the network stays at the foundation's weights "
                  "(mean over seeds; band: min to max)", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5))
-    fig.tight_layout()
+    _legend_right(fig, ax)
     save(fig, path)
 
 
