@@ -55,14 +55,14 @@ report: $(STAMP)
 
 # make bench-train [device=cuda] [compile=true]: the CPU sizes' step phases, or pi0 on a GPU
 bench-train: $(STAMP)
-	$(PY) -m harness.perf train $(call quote,$(filter device=% compile=%,$(OVERRIDES)))
+	$(PY) -m harness.perf.throughput train $(call quote,$(filter device=% compile=%,$(OVERRIDES)))
 
 bench-methods: $(STAMP)
-	$(PY) -m harness.perf methods
+	$(PY) -m harness.perf.throughput methods
 
 # make bench-eval [BENCH=libero-quick] [WORKERS=2] [cameras=true image_size=128] [device=cuda]
 bench-eval: $(STAMP)
-	$(PY) -m harness.perf eval $(or $(WORKERS),2) --bench $(or $(BENCH),mw-quick) \
+	$(PY) -m harness.perf.throughput eval $(or $(WORKERS),2) --bench $(or $(BENCH),mw-quick) \
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
 		$(if $(device),--device $(device))
 
@@ -72,7 +72,7 @@ bench-eval: $(STAMP)
 #   smoke test.
 #   On a device machine without the project's packages: docs/performance.md, "The GPU check"
 gpu-check: $(STAMP)
-	$(PY) -m harness.gpu_check $(call quote,$(filter device=% parts=%,$(OVERRIDES)))
+	$(PY) -m harness.perf.gpu_check $(call quote,$(filter device=% parts=%,$(OVERRIDES)))
 
 # N processes log what a benchmark job logs, all at once, to one loopback `mlflow server` started as
 # mlflow-server starts it, then to SQLite; the store is read back: nothing lost, errors retried or
@@ -80,7 +80,7 @@ gpu-check: $(STAMP)
 WRITERS ?= 8,16,32
 STORES ?= server,sqlite
 bench-tracking: $(STAMP)
-	$(PY) -m harness.tracking_load --writers $(WRITERS) --stores $(STORES)
+	$(PY) -m harness.perf.tracking_load --writers $(WRITERS) --stores $(STORES)
 # a benchmark's demos as a LeRobotDataset v3.0 folder (docs/lerobot.md):
 #   make lerobot-export BENCH=libero-quick out=exports/libero-quick [cameras=true] [images=png]
 .PHONY: lerobot-export
@@ -100,8 +100,10 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings -m slow tests
 
+# style (ruff), then the one-way data flow: import-linter's contracts in pyproject.toml
 lint: $(STAMP)
 	$(PY) -m ruff check harness methods suites policies tests
+	$(VENV)/bin/lint-imports --no-logo
 
 ui: $(STAMP)
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/results/mlflow.db --host 127.0.0.1 --port 5000

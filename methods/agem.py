@@ -17,7 +17,7 @@ from typing import Annotated
 import torch
 from annotated_types import Ge, doc
 
-from harness.datasets import TrainingData
+from harness.data.datasets import TrainingData
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
 

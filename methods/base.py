@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from harness.datasets import TrainingData
+from harness.data.datasets import TrainingData
 
 
 @dataclass

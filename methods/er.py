@@ -9,7 +9,7 @@ from typing import Annotated
 import torch
 from annotated_types import Ge, Interval
 
-from harness.datasets import TrainingData, merge_batches
+from harness.data.datasets import TrainingData, merge_batches
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from harness.datasets import TrainingData
+from harness.data.datasets import TrainingData
 from methods import register_method
 from methods.base import Method, TaskContext
 

@@ -12,9 +12,8 @@ from policies.registry import (
     make_config,
     policy_for_config,
     policy_names,
-    register_policy,
 )
 
 __all__ = ["FlowMatchingBase", "PolicyConfig", "FlowMatchingConfig", "POLICY_SIZES",
            "FlowMatchingPolicy", "Normalizer", "Pi0Config", "Pi0Policy", "get_policy",
-           "make_config", "policy_for_config", "policy_names", "register_policy"]
+           "make_config", "policy_for_config", "policy_names"]

@@ -8,35 +8,22 @@ import sys
 
 from torch import nn
 
+from policies.flow_matching.modeling import FlowMatchingPolicy
+from policies.pi0.modeling import Pi0Policy
 from policies.user_class import load_class
 
-_REGISTRY: dict[str, type[nn.Module]] = {}
-
-
-def register_policy(name: str):
-    """Class decorator: make a policy available as `policy=<name>`."""
-
-    def register(cls: type[nn.Module]) -> type[nn.Module]:
-        _REGISTRY[name] = cls
-        return cls
-
-    return register
-
-
-def _load_builtins() -> None:
-    import policies.flow_matching.modeling  # noqa: F401
-    import policies.pi0.modeling  # noqa: F401
+# The built-in policies by name: a table, so the registry imports the policies and no policy
+# imports the registry. A user's policy needs no entry: `policy=file.py:Class` names it.
+_REGISTRY: dict[str, type[nn.Module]] = {"mlp": FlowMatchingPolicy, "pi0": Pi0Policy}
 
 
 def policy_names() -> list[str]:
-    _load_builtins()
     return sorted(_REGISTRY)
 
 
 def get_policy(spec: str) -> type[nn.Module]:
     """A policy class from a registered name or `module.path:ClassName` / `file.py:ClassName`;
     a ValueError naming the valid ones otherwise."""
-    _load_builtins()
     if ":" not in spec:
         if spec not in _REGISTRY:
             raise ValueError(f"unknown policy {spec!r}; valid: {', '.join(sorted(_REGISTRY))}, "
@@ -57,7 +44,6 @@ def make_config(spec: str, **fields):
 def policy_for_config(config) -> nn.Module:
     """A fresh policy for `config`: the class whose Config is the config's class, among the
     registered ones and the classes of the module that defines the config (a user's policy)."""
-    _load_builtins()
     candidates = list(_REGISTRY.values())
     module = sys.modules.get(type(config).__module__)
     candidates += [v for v in vars(module).values() if isinstance(v, type)] if module else []

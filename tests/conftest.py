@@ -38,12 +38,12 @@ def forbid_retraining(monkeypatch):
         raise AssertionError("work was redone instead of reused")
 
     def forbid() -> None:
-        import harness.data
+        import harness.data.prepare
 
-        for target in ("harness.demos.generate_demos", "harness.foundation.train_stage",
-                       "harness.runner.train_stage"):
+        for target in ("harness.data.demos.generate_demos", "harness.protocol.foundation.train_stage",
+                       "harness.protocol.stream.train_stage"):
             monkeypatch.setattr(target, fail)
-        find_missing = harness.data.missing_demo_jobs
+        find_missing = harness.data.prepare.missing_demo_jobs
 
         def none_missing(*args):  # demo files made in worker processes would escape the patches
             missing = find_missing(*args)
@@ -51,6 +51,6 @@ def forbid_retraining(monkeypatch):
                 fail()
             return missing
 
-        monkeypatch.setattr(harness.data, "missing_demo_jobs", none_missing)
+        monkeypatch.setattr(harness.data.prepare, "missing_demo_jobs", none_missing)
 
     return forbid

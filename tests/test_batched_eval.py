@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from harness.evaluation import (
+from harness.evaluate.rollouts import (
     EnvCache,
     EvalSettings,
     Evaluator,

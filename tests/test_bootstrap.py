@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from harness.bootstrap import bootstrap_ci
+from harness.measure.bootstrap import bootstrap_ci
 
 
 def test_interval_of_a_normal_sample_matches_theory():

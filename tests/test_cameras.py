@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from harness.config import BenchConfig
-from harness.data import prepare_data
-from harness.demos import read_demo_file
-from harness.foundation import build_policy
+from harness.config.benchmark import BenchConfig
+from harness.data.demos import read_demo_file
+from harness.data.prepare import prepare_data
+from harness.protocol.foundation import build_policy
 from suites import get_suite
 from suites.base import CAMERA_KEYS
 

@@ -1,7 +1,7 @@
 """Every setting's declared valid values are what the command line accepts: a value outside them
 stops with one line naming the key, the value and what is valid (exit 2) before any demo,
 foundation or MLflow run is made; a value inside them plans. hypothesis draws the values from
-the declarations themselves (harness/validation.py), for every field of BenchConfig and every
+the declarations themselves (harness/config/validation.py), for every field of BenchConfig and every
 hyperparameter of every registered method."""
 
 from __future__ import annotations
@@ -24,10 +24,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from harness.cli import main, plan
-from harness.config import BenchConfig, resolve
-from harness.errors import RetainError
-from harness.validation import AtMost, check, constraints, declared_types, describe
+from harness.common.errors import RetainError
+from harness.config.benchmark import BenchConfig, resolve
+from harness.config.validation import AtMost, check, constraints, declared_types, describe
+from harness.run.cli import main
+from harness.run.plan import plan
 from methods import Method, MethodConfig, get_method, method_names
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -194,7 +195,7 @@ def test_declared_values_decide_what_plans_and_what_stops(tmp_path_factory, case
         return
     err = io.StringIO()
     with _no_tracking_uri(), contextlib.redirect_stderr(err), \
-            mock.patch("harness.cli.execute", _refuse_execution):
+            mock.patch("harness.run.cli.execute", _refuse_execution):
         code = main(["bench", *args])
     lines = [line for line in err.getvalue().splitlines() if line.strip()]
     assert code == 2 and len(lines) == 1, (args, err.getvalue())
@@ -229,7 +230,7 @@ def test_the_command_refuses_before_making_anything(tmp_path, args, message):
 def test_cross_field_grid_and_hyperparameter_values_are_refused(tmp_path, args, message):
     err = io.StringIO()
     with _no_tracking_uri(), contextlib.redirect_stderr(err), \
-            mock.patch("harness.cli.execute", _refuse_execution):
+            mock.patch("harness.run.cli.execute", _refuse_execution):
         code = main(["bench", *TINY, f"results_dir={tmp_path}/results",
                      f"cache_dir={tmp_path}/cache", *args])
     assert code == 2 and err.getvalue() == f"error: {message}\n"
@@ -297,7 +298,7 @@ class _UserMethod(Method):
 
 def test_a_users_method_is_checked_as_documented():
     """docs/adding-a-method.md's declarations, on a method that is not registered."""
-    from harness.runner import make_method
+    from harness.protocol.stream import make_method
 
     assert make_method(_UserMethod, {"ratio": "0.25"}).config.ratio == 0.25
     with pytest.raises(RetainError, match=r"^bad value 1.5 for ratio \(method user_method\): "

@@ -6,8 +6,8 @@ import math
 import pytest
 import torch
 
-from harness.errors import RetainError
-from harness.runner import make_method
+from harness.common.errors import RetainError
+from harness.protocol.stream import make_method
 from methods.consft import ConSFT, ConSFTConfig, annealing, temperature
 from tests.conftest import make_batch
 from tests.test_methods import _ctx, _data

@@ -7,7 +7,7 @@ import subprocess
 import sys
 import time
 
-from harness.cli import CpuUsage
+from harness.run.execute import CpuUsage
 
 BURN = "import time\nend = time.process_time() + {s}\nwhile time.process_time() < end: pass"
 

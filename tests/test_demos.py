@@ -4,8 +4,8 @@ import h5py
 import numpy as np
 import pytest
 
-from harness.demos import DemoSpec, Episode, load_or_generate, read_demo_file, write_demo_file
-from harness.errors import DemoFileError
+from harness.common.errors import DemoFileError
+from harness.data.demos import DemoSpec, Episode, load_or_generate, read_demo_file, write_demo_file
 
 
 def _episodes(n=2, t=7):
@@ -78,13 +78,13 @@ def test_generation_is_cached_and_reused(tmp_path, monkeypatch):
     def fail(*args, **kwargs):
         raise AssertionError("the cache was not reused")
 
-    monkeypatch.setattr("harness.demos.generate_demos", fail)
+    monkeypatch.setattr("harness.data.demos.generate_demos", fail)
     second = load_or_generate(suite, spec, tmp_path, progress=False)
     np.testing.assert_array_equal(first[1].actions, second[1].actions)
 
 
 def test_same_seed_same_demos(tmp_path):
-    from harness.demos import generate_demos
+    from harness.data.demos import generate_demos
     from suites import get_suite
 
     suite = get_suite("metaworld")
@@ -96,12 +96,13 @@ def test_same_seed_same_demos(tmp_path):
 
 def test_demo_files_made_in_worker_processes_equal_those_made_in_this_one(tmp_path, monkeypatch,
                                                                            capsys):
-    import harness.cli
-    from harness.cli import make_missing_demos, plan
-    from harness.data import missing_demo_jobs
+    import harness.run.execute
+    from harness.data.prepare import missing_demo_jobs
+    from harness.run.execute import make_missing_demos
+    from harness.run.plan import plan
     from suites import get_suite
 
-    monkeypatch.setattr(harness.cli, "available_cores", lambda: 2)  # CI may have one
+    monkeypatch.setattr(harness.run.execute, "available_cores", lambda: 2)  # CI may have one
     workers = plan(["PROFILE=tiny", "executor=local", f"cache_dir={tmp_path / 'workers'}"]).cfg
     here = plan(["PROFILE=tiny", "executor=serial", f"cache_dir={tmp_path / 'here'}"]).cfg
     suite = get_suite(workers.suite)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import yaml
 
-from harness.cli import main
-from harness.tracking import machine
+from harness.run.cli import main
+from harness.track.tracking import machine
 
 
 @pytest.fixture(scope="module")

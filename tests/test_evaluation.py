@@ -3,7 +3,13 @@
 import numpy as np
 import torch
 
-from harness.evaluation import EnvCache, EvalSettings, Evaluator, evaluation_episodes, rollout
+from harness.evaluate.rollouts import (
+    EnvCache,
+    EvalSettings,
+    Evaluator,
+    evaluation_episodes,
+    rollout,
+)
 from policies import FlowMatchingConfig, FlowMatchingPolicy
 from suites import get_suite
 

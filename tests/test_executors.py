@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from harness.config import resolve
-from harness.executors import plan_slots
+from harness.config.benchmark import resolve
+from harness.run.executors import plan_slots
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUTS = ("success_matrix.csv", "metrics.json", "heldout_loss.csv")
@@ -128,7 +128,7 @@ def test_killed_comparison_rerun_leaves_one_finished_run_per_job(tmp_path, seria
 
 
 def test_time_left_is_estimated_from_the_jobs_run_now():
-    from harness.cli import Progress
+    from harness.run.execute import Progress
 
     progress = Progress(total=4, finished_earlier=2)
     assert progress.done_one(earlier=True) == ("1/4", "finished earlier")
@@ -140,8 +140,8 @@ def test_time_left_is_estimated_from_the_jobs_run_now():
 
 
 def test_a_setting_given_outside_grid_gets_its_own_run_directory():
-    from harness.cli import plan
-    from harness.runner import run_dir
+    from harness.protocol.stream import run_dir
+    from harness.run.plan import plan
 
     default = plan(["PROFILE=tiny", "METHOD=sft,consft"]).variants
     changed = plan(["PROFILE=tiny", "METHOD=sft,consft", "lr=1e-4", "kappa=0.5"]).variants
@@ -171,7 +171,7 @@ def test_jobs_at_once_follow_the_cores(args, cores, expected):
 
 
 def test_unknown_executor_is_a_one_line_error(capsys):
-    from harness.cli import main
+    from harness.run.cli import main
 
     assert main(["bench", "PROFILE=tiny", "executor=spark"]) == 2
     err = capsys.readouterr().err

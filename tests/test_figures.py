@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-from harness import figures
-from harness.bootstrap import Interval
-from harness.config import load_benchmark
+from harness.config.benchmark import load_benchmark
+from harness.measure.bootstrap import Interval
 from harness.report import plots
+from harness.track import figures
 
 
 @pytest.fixture

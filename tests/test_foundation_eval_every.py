@@ -11,10 +11,10 @@ import json
 import numpy as np
 import pytest
 
-from harness.cli import main
-from harness.config import BenchConfig, resolve, run_key_settings
-from harness.errors import RetainError
-from harness.stages import load_checkpoint
+from harness.common.errors import RetainError
+from harness.config.benchmark import BenchConfig, resolve, run_key_settings
+from harness.evaluate.stages import load_checkpoint
+from harness.run.cli import main
 
 RUN = "sft[spatial_episodes=2 foundation_eval_every=2]"
 

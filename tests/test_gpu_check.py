@@ -12,14 +12,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from harness import gpu_check
+from harness.perf import gpu_check
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
 def test_every_part_passes_on_the_cpu():
-    proc = subprocess.run([sys.executable, "-m", "harness.gpu_check", "device=cpu"],
+    proc = subprocess.run([sys.executable, "-m", "harness.perf.gpu_check", "device=cpu"],
                           capture_output=True, text=True, cwd=ROOT, timeout=900)
     out = proc.stdout
     assert proc.returncode == 0, out[-4000:] + proc.stderr[-4000:]

@@ -1,4 +1,4 @@
-"""LeRobot datasets in and out (harness/lerobot): folders of format v2.1 (videos), v2.0 (images
+"""LeRobot datasets in and out (harness/data/lerobot): folders of format v2.1 (videos), v2.0 (images
 in the parquet files, as physical-intelligence/libero) and v3.0 (many episodes per video file),
 each written here with pyarrow and PyAV as LeRobot lays them out, read as a benchmark's
 demos_dir; the writer's folder read back; and every malformed input as one line naming the file,
@@ -17,11 +17,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from harness.config import BenchConfig
-from harness.data import user_demos
-from harness.demos import Episode
-from harness.errors import RetainError
-from harness.lerobot.writer import write_dataset
+from harness.common.errors import RetainError
+from harness.config.benchmark import BenchConfig
+from harness.data.demos import Episode
+from harness.data.lerobot.writer import write_dataset
+from harness.data.prepare import user_demos
 from suites.base import Suite
 
 SIZE, FPS = 32, 10
@@ -283,8 +283,8 @@ def test_v30_video_folder_with_many_episodes_per_file(tmp_path):
 def test_export_then_read_back_gives_the_same_actions_states_and_instructions(tmp_path):
     """The `lerobot-export` command's v3.0 folder (of a Meta-World benchmark whose demos come
     from another dataset, here a v2.1 folder), read back as demos_dir."""
-    from harness.lerobot.export import export
-    from harness.lerobot.layout import open_layout
+    from harness.data.lerobot.layout import open_layout
+    from harness.run.lerobot_export import export
     from suites import get_suite
 
     metaworld = get_suite("metaworld")
@@ -308,7 +308,7 @@ def test_export_then_read_back_gives_the_same_actions_states_and_instructions(tm
     assert stats["action"]["max"] == episodes_max([e.actions for e in episodes])
     tasks = pd.read_parquet(out / "meta/tasks.parquet")  # as LeRobot reads it: text -> index
     assert tasks.loc[instructions[1]].task_index == 1
-    from harness.config import resolve
+    from harness.config.benchmark import resolve
 
     cfg = resolve(bench + [f"demos_dir={out}", f"cache_dir={tmp_path / 'c2'}"])
     for task, expected in (("reach-v3", episodes[:3]), ("push-v3", episodes[3:])):
@@ -465,7 +465,7 @@ def test_frames_that_disagree_with_the_episode_index(tmp_path, version):
 
 
 def test_export_refuses_an_existing_folder_and_bad_settings(tmp_path):
-    from harness.lerobot.export import export
+    from harness.run.lerobot_export import export
 
     (tmp_path / "there").mkdir()
     with pytest.raises(RetainError, match="already exists; expected a new folder"):

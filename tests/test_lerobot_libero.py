@@ -10,8 +10,8 @@ import json
 import numpy as np
 import pytest
 
-from harness.demos import Episode
-from harness.lerobot.writer import write_dataset
+from harness.data.demos import Episode
+from harness.data.lerobot.writer import write_dataset
 from suites import get_suite
 
 pytestmark = pytest.mark.slow
@@ -44,7 +44,7 @@ def test_cameras_and_proprioception_train_and_evaluate_from_a_lerobot_folder(tmp
                                                                             monkeypatch):
     """Benchmark libero-lerobot-quick (pi0, tiny), on a v3.0 folder laid out as the community's
     LIBERO sets (8-D state, both cameras as video, turned 180 degrees), one task of each stage."""
-    from harness.cli import main
+    from harness.run.cli import main
 
     suite = get_suite("libero-proprio")
     rng = np.random.default_rng(0)
@@ -67,7 +67,7 @@ def test_cameras_and_proprioception_train_and_evaluate_from_a_lerobot_folder(tmp
     assert 0.0 <= metrics["metrics"]["foundation_success_stage0"] <= 1.0  # rolled out in LIBERO
     cached = sorted((tmp_path / "cache/demos/libero-proprio").glob("*.hdf5"))
     assert len(cached) == 4  # two tasks, two splits, read from the folder
-    from harness.stages import load_checkpoint
+    from harness.evaluate.stages import load_checkpoint
 
     policy = load_checkpoint(next((tmp_path / "cache/foundation").rglob("policy.pt")))["policy"]
     assert policy["state_norm.mean"].shape == (8,)  # the policy read the 8-D state

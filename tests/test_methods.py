@@ -2,7 +2,7 @@
 
 import torch
 
-from harness.datasets import TrainingData
+from harness.data.datasets import TrainingData
 from methods import TaskContext, get_method, method_names
 from methods.er import ERConfig, ExperienceReplay
 from methods.ewc import OnlineEWC, per_sample_fisher

@@ -6,9 +6,9 @@ import copy
 import pytest
 import torch
 
-from harness.datasets import TrainingData
-from harness.stages import load_checkpoint, save_checkpoint
-from harness.trainer import TrainSettings, train_stage
+from harness.data.datasets import TrainingData
+from harness.evaluate.stages import load_checkpoint, save_checkpoint
+from harness.train.trainer import TrainSettings, train_stage
 from methods import TaskContext, get_method, method_names
 from methods.distill import Distill, DistillConfig
 from methods.mas import MAS, MASConfig, output_sensitivity
@@ -87,8 +87,8 @@ def test_merge_interpolates_with_the_foundation(tiny_policy, alpha):
 
 
 def test_merge_rejects_alpha_outside_zero_one():
-    from harness.errors import RetainError
-    from harness.runner import make_method
+    from harness.common.errors import RetainError
+    from harness.protocol.stream import make_method
 
     with pytest.raises(RetainError, match=r"bad value 1.5 for alpha \(method merge\): expected "
                                           r"a number in \[0, 1\]"):
@@ -150,8 +150,8 @@ def test_distill_at_strength_zero_is_sft_bit_for_bit(tiny_policy):
 
 
 def test_distill_rejects_an_unknown_reference():
-    from harness.errors import RetainError
-    from harness.runner import make_method
+    from harness.common.errors import RetainError
+    from harness.protocol.stream import make_method
 
     with pytest.raises(RetainError, match="bad value 'teacher' for reference .*: expected one of "
                                           "previous, foundation"):
@@ -290,8 +290,8 @@ def test_alpha_sweep_is_drawn_as_a_retention_plasticity_curve(monkeypatch, tmp_p
 @pytest.fixture(scope="module")
 def tiny_comparison(tmp_path_factory):
     """PROFILE=tiny end to end for the three methods (merge at alpha=0), then the report."""
-    from harness.cli import main
     from harness.report import ReportSettings, build_report
+    from harness.run.cli import main
 
     root = tmp_path_factory.mktemp("mdm")
     with pytest.MonkeyPatch.context() as mp:

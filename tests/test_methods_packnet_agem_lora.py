@@ -7,10 +7,10 @@ import json
 import pytest
 import torch
 
-from harness.cli import main
-from harness.perf import ACTION_DIM, STATE_DIM, synthetic_data
-from harness.stages import load_checkpoint
-from harness.trainer import TrainSettings, train_stage
+from harness.evaluate.stages import load_checkpoint
+from harness.perf.throughput import ACTION_DIM, STATE_DIM, synthetic_data
+from harness.run.cli import main
+from harness.train.trainer import TrainSettings, train_stage
 from methods import TaskContext, get_method
 from methods.agem import AGEM, AGEMConfig
 from methods.base import snapshot
@@ -103,8 +103,8 @@ def test_packnet_evaluation_view_zeroes_later_tasks_weights_and_restores_them():
 
 
 def test_packnet_rejects_a_prune_ratio_outside_0_1():
-    from harness.errors import RetainError
-    from harness.runner import make_method
+    from harness.common.errors import RetainError
+    from harness.protocol.stream import make_method
 
     with pytest.raises(RetainError, match=r"bad value 1.0 for prune_ratio .*: expected a number "
                                           r"in \(0, 1\)"):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.metrics import (
+from harness.measure.metrics import (
     backward_transfer,
     core_metrics,
     forgetting,
@@ -13,7 +13,7 @@ from harness.metrics import (
     plasticity,
     stream_final_success,
 )
-from harness.updates import hoyer_sparsity, update_stats
+from harness.measure.updates import hoyer_sparsity, update_stats
 
 # columns: F1, F2, s1, s2, s3; rows: stages 0..3
 R = np.array([

@@ -8,16 +8,16 @@ import sys
 import pytest
 import torch
 
-from harness.cli import main
-from harness.config import BenchConfig
-from harness.data import BenchmarkData
-from harness.evaluation import EvalSettings, TaskEvaluation
-from harness.optim import FlatAdamW
-from harness.perf import _policy, synthetic_data
-from harness.runner import StageWatch
-from harness.stages import StageRecord, load_checkpoint
-from harness.trainer import TrainSettings, train_stage
-from harness.updates import paper_sparsity, update_stats
+from harness.config.benchmark import BenchConfig
+from harness.data.prepare import BenchmarkData
+from harness.evaluate.rollouts import EvalSettings, TaskEvaluation
+from harness.evaluate.stages import StageRecord, load_checkpoint
+from harness.measure.updates import paper_sparsity, update_stats
+from harness.perf.throughput import _policy, synthetic_data
+from harness.protocol.stream import StageWatch
+from harness.run.cli import main
+from harness.train.optim import FlatAdamW
+from harness.train.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
 from methods.base import snapshot
 from suites.metaworld import MetaWorldSuite

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 import torch
 
-from harness.cli import main
-from harness.config import resolve
-from harness.data import prepare_data
-from harness.datasets import TrainingData, chunk_episodes, instruction_entries
-from harness.demos import Episode
-from harness.device import resolve_device
-from harness.errors import RetainError
-from harness.trainer import TrainSettings, train_stage
+from harness.common.device import resolve_device
+from harness.common.errors import RetainError
+from harness.config.benchmark import class_label, resolve
+from harness.data.datasets import TrainingData, chunk_episodes, instruction_entries
+from harness.data.demos import Episode
+from harness.data.prepare import prepare_data
+from harness.run.cli import main
+from harness.train.trainer import TrainSettings, train_stage
 from methods import TaskContext, get_method, method_names
 from policies import Pi0Config, Pi0Policy, get_policy, make_config, policy_for_config
 from policies.pi0.modeling import block_attention_mask
@@ -240,6 +240,18 @@ def test_the_documented_policy_runs_a_tiny_benchmark_as_a_user_would(tmp_path):
          f"results_dir={tmp_path}/results", f"cache_dir={tmp_path}/cache", "progress=false",
          "eval_workers=1"], capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    (out,) = (tmp_path / "results/mw-quick-tiny").glob("sft*/seed0")  # labelled by the policy
+    # labelled by the policy's class and a hash of its path, not by the whole path
+    (out,) = (tmp_path / "results/mw-quick-tiny").glob("sft*/seed0")
+    assert re.fullmatch(r"sft\[policy=MyPolicy@[0-9a-f]{6}\]", out.parent.name), out.parent.name
+    assert out.parent.name == f"sft[policy={class_label(f'{path}:MyPolicy')}]"
     layers = (out / "updates_per_layer.csv").read_text()
     assert "velocity_net.0.weight" in layers
+
+
+def test_a_class_given_by_file_path_gets_a_short_label_that_never_collides(tmp_path):
+    one, two = tmp_path / "a" / "my_policy.py", tmp_path / "b" / "my_policy.py"
+    labels = {class_label(f"{one}:MyPolicy"), class_label(f"{two}:MyPolicy")}
+    assert len(labels) == 2 and all(re.fullmatch(r"MyPolicy@[0-9a-f]{6}", x) for x in labels)
+    assert class_label(f"{one}:MyPolicy") == class_label(f"{tmp_path}/b/../a/my_policy.py:MyPolicy")
+    for spec in ("pi0", "my_pkg.my_policy:MyPolicy"):  # names and modules read well as they are
+        assert class_label(spec) == spec

@@ -1,7 +1,7 @@
 """A job resumed at another commit: MLflow keeps its first `git_commit` param (params cannot
 change), and the run's commits tag lists every commit that ran part of it."""
 
-from harness.tracking import COMMITS_TAG, KEY_TAG, Tracker, run_commits
+from harness.track.tracking import COMMITS_TAG, KEY_TAG, Tracker, run_commits
 
 
 def test_a_resumed_run_lists_both_commits_and_a_rerun_at_the_same_one_adds_none(tmp_path, monkeypatch):

@@ -5,9 +5,11 @@ import signal
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUTS = ("success_matrix.csv", "metrics.json", "heldout_loss.csv")
@@ -127,3 +129,29 @@ def test_three_processes_logging_to_one_store_lose_no_run(tmp_path, reference):
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
     assert sorted(r.data.tags["seed"] for r in children) == ["0", "1", "2"]
     assert all(r.info.status == "FINISHED" for r in runs) and len(runs) == 6
+
+
+def test_a_checkpoint_saved_before_the_subpackages_still_loads(tmp_path):
+    """A replay buffer pickles its TrainingData by module name; checkpoints written while the
+    class lived in harness.datasets (before harness/ was grouped) must still resume."""
+    from harness.data.datasets import TrainingData
+    from harness.evaluate.stages import load_checkpoint, save_checkpoint
+
+    buffer = TrainingData({"state": torch.ones(2, 3)}, torch.zeros(2, 4, 2),
+                          torch.ones(2, 4, dtype=torch.bool), torch.zeros(2, dtype=torch.long),
+                          torch.zeros(1, 8), ["task"])
+    path = tmp_path / "stage_1.pt"
+    save_checkpoint(path, {"method": {"buffer": buffer}})
+    with zipfile.ZipFile(path) as z:  # the same file as the old layout wrote it
+        entries = {info: z.read(info.filename) for info in z.infolist()}
+    old = tmp_path / "old.pt"
+    with zipfile.ZipFile(old, "w", zipfile.ZIP_STORED) as z:
+        for info, data in entries.items():
+            if info.filename.endswith("data.pkl"):
+                assert b"harness.data.datasets\n" in data
+                data = data.replace(b"harness.data.datasets\n", b"harness.datasets\n")
+            z.writestr(info, data)
+    with pytest.raises(ModuleNotFoundError):
+        torch.load(old, weights_only=False)
+    loaded = load_checkpoint(old)["method"]["buffer"]
+    assert isinstance(loaded, TrainingData) and torch.equal(loaded.obs["state"], buffer.obs["state"])

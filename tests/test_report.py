@@ -7,7 +7,7 @@ import io
 import numpy as np
 import pytest
 
-from harness.metrics import core_metrics, libero_metrics, offline_retention
+from harness.measure.metrics import core_metrics, libero_metrics, offline_retention
 
 FOUNDATION = ["reach-v3", "push-v3"]
 STREAM = ["drawer-close-v3", "window-close-v3"]
@@ -54,7 +54,7 @@ def success_matrix(method: str, seed: int) -> np.ndarray:
 
 
 def log_child(client, exp_id: str, parent: str, method: str, seed: int, tmp) -> None:
-    """A child run shaped like the ones `python -m harness bench` logs (harness/cli.py)."""
+    """A child run shaped like the ones `python -m harness bench` logs (harness/run/execute.py)."""
     from mlflow.entities import Metric, Param
 
     tags = {"mlflow.parentRunId": parent, "method": method, "seed": str(seed), "benchmark": EXPERIMENT}
@@ -195,7 +195,7 @@ def test_report_is_logged_as_a_run(report):
 
 
 def test_unknown_experiment_is_one_line_error(store):
-    from harness.errors import RetainError
+    from harness.common.errors import RetainError
     from harness.report import ReportSettings, build_report
 
     with pytest.MonkeyPatch.context() as mp:

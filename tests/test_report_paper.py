@@ -12,10 +12,10 @@ import json
 import numpy as np
 import pytest
 
-from harness.config import BenchConfig
-from harness.jobs import provenance_params, stage_metrics
-from harness.runner import RunResult, summary_metrics
-from harness.stages import StageRecord
+from harness.config.benchmark import BenchConfig
+from harness.evaluate.stages import StageRecord
+from harness.protocol.stream import RunResult, summary_metrics
+from harness.run.jobs import provenance_params, stage_metrics
 from methods.consft import ConSFTConfig
 
 EXPERIMENT = "mw-paper-test"
@@ -127,7 +127,7 @@ def log_child(tracker, exp_parent: str, method: str, seed: int, tmp, grouped: bo
 def store(tmp_path_factory):
     """sft and consft (the paper's) at seeds 0 and 1 with grouped stages, and consft as read
     from the abstract alone (one task a stage, no paper metrics) at seeds 0 and 1."""
-    from harness.tracking import Tracker
+    from harness.track.tracking import Tracker
 
     root = tmp_path_factory.mktemp("paper")
     results = root / "results"
@@ -229,7 +229,7 @@ def test_main_table_has_steps_and_eq8_sparsity(report):
 
 def test_grouped_stages_are_read_from_the_config(store):
     from harness.report.runs import experiment_id, load_runs, open_client
-    from harness.tracking import tracking_uri
+    from harness.track.tracking import tracking_uri
 
     uri = tracking_uri(str(store[0]))
     client = open_client(uri)
@@ -258,7 +258,7 @@ def test_grouped_stages_in_the_heatmap_and_curves(store, monkeypatch, tmp_path):
     from harness.report.aggregate import summarize
     from harness.report.groups import build_rows
     from harness.report.runs import experiment_id, load_runs, open_client
-    from harness.tracking import tracking_uri
+    from harness.track.tracking import tracking_uri
 
     uri = tracking_uri(str(store[0]))
     client = open_client(uri)
@@ -342,7 +342,7 @@ def test_sparsity_series_is_the_mean_and_range_over_seeds(store):
     from harness.report.aggregate import summarize
     from harness.report.groups import build_rows
     from harness.report.runs import experiment_id, load_runs, open_client
-    from harness.tracking import tracking_uri
+    from harness.track.tracking import tracking_uri
 
     uri = tracking_uri(str(store[0]))
     client = open_client(uri)
@@ -356,7 +356,7 @@ def test_sparsity_series_is_the_mean_and_range_over_seeds(store):
 
 
 def test_run_outputs_carry_the_stage_progress(tmp_path):
-    from harness.run_outputs import write_run_outputs
+    from harness.track.run_outputs import write_run_outputs
 
     cfg = config()
     stages = records("consft", 0)

@@ -10,9 +10,9 @@ import json
 import numpy as np
 import pytest
 
-from harness.config import BenchConfig, resolve, run_key_settings
-from harness.errors import RetainError
-from harness.metrics import spatial_metrics
+from harness.common.errors import RetainError
+from harness.config.benchmark import BenchConfig, resolve, run_key_settings
+from harness.measure.metrics import spatial_metrics
 from suites import get_suite
 from suites.base import SuiteError, is_spatial
 from suites.metaworld import widened_box
@@ -84,7 +84,7 @@ def test_metaworld_probe_states_lie_beyond_every_demo_and_eval_state(task):
 
 
 def test_a_suite_without_a_probe_says_so_before_any_work(capsys):
-    from harness.cli import main
+    from harness.run.cli import main
 
     assert main(["bench", "BENCH=bimanual-quick", "spatial_episodes=2"]) == 2
     err = capsys.readouterr().err
@@ -162,7 +162,7 @@ def test_probe_off_leaves_run_keys_alone_and_bad_counts_fail():
 @pytest.fixture(scope="module")
 def two_tiny_runs(tmp_path_factory):
     """The tiny profile twice on one cache: with the probe (2 episodes) and without."""
-    from harness.cli import main
+    from harness.run.cli import main
 
     root = tmp_path_factory.mktemp("spatial")
     common = ["bench", "PROFILE=tiny", "METHOD=sft", f"results_dir={root}/results",

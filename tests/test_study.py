@@ -1,4 +1,4 @@
-"""Studies (harness/study.py): the regimes study's parts expand to the jobs it promises without
+"""Studies (harness/run/study.py): the regimes study's parts expand to the jobs it promises without
 running anything, bad names fail in one line, the breadth benchmarks are nested on one stream,
 and a tiny study runs end to end and, run again, trains nothing."""
 
@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from harness.config import load_benchmark
-from harness.errors import RetainError
-from harness.study import load_study, plan_part, stages_done, study
+from harness.common.errors import RetainError
+from harness.config.benchmark import load_benchmark
+from harness.run.study import load_study, plan_part, stages_done, study
 
 ROOT = Path(__file__).resolve().parents[1]
 METHOD_LABELS = ["sft", "sft[lr=0.0001]", "sft[lr=3e-05]", "consft", "consft[variant=dft]",

@@ -13,10 +13,10 @@ import h5py
 import numpy as np
 import pytest
 
-from harness.config import BenchConfig
-from harness.demos import DemoSpec, Episode, read_demo_file, write_demo_file
-from harness.errors import RetainError
-from harness.evaluation import evaluation_episodes
+from harness.common.errors import RetainError
+from harness.config.benchmark import BenchConfig
+from harness.data.demos import DemoSpec, Episode, read_demo_file, write_demo_file
+from harness.evaluate.rollouts import evaluation_episodes
 from suites import get_suite
 from suites.libero import install
 from suites.libero.env import FRESH_PLACEMENT, NoExpert
@@ -302,7 +302,7 @@ def test_libero_file_missing_a_key_is_one_line_naming_it(object_env, tmp_path, d
 
 
 def test_demos_dir_matches_tasks_by_name_and_names_a_missing_one(tmp_path, monkeypatch):
-    from harness.data import user_demos
+    from harness.data.prepare import user_demos
 
     states = init_states(OBJECT_TASK)
     folder = tmp_path / "libero_object"
@@ -340,7 +340,7 @@ def test_expert_table_writes_one_block_per_libero_suite(tmp_path):
 def test_every_libero_benchmark_but_libero_10_has_a_scripted_expert_for_every_task():
     """A task without an expert would stop a run after the demos of the tasks before it; only
     libero-10's stream (no expert yet) needs LIBERO's own files through `demos_dir`."""
-    from harness.config import benchmark_names, load_benchmark
+    from harness.config.benchmark import benchmark_names, load_benchmark
     from suites.libero.experts import EXPERT_TASKS
 
     libero = [load_benchmark(n) for n in benchmark_names()]

@@ -1,4 +1,4 @@
-"""Several processes logging through harness.tracking at once, to a real loopback `mlflow server`
+"""Several processes logging through harness.track.tracking at once, to a real loopback `mlflow server`
 and to a SQLite file, while a real fault happens: the server is killed and restarted, or another
 connection holds SQLite's write lock past MLflow's busy timeout. Every run, metric point and
 artifact must be read back; what cannot be written must be a one-line error, never a silent gap.
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.tracking_load import Store, Volume, main, run_load
+from harness.perf.tracking_load import Store, Volume, main, run_load
 
 SMALL = Volume(runs=1, stages=2, steps=150, step_keys=4, tasks=3, artifact_kb=4)
 

@@ -7,9 +7,9 @@ import copy
 import pytest
 import torch
 
-from harness.optim import FlatAdamW
-from harness.perf import _policy, synthetic_data
-from harness.trainer import TrainSettings, train_stage
+from harness.perf.throughput import _policy, synthetic_data
+from harness.train.optim import FlatAdamW
+from harness.train.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
 
 
@@ -23,7 +23,7 @@ def _train(policy, method, settings, seed=0):
 
 
 def test_prefetching_the_next_batch_does_not_change_the_weights(monkeypatch):
-    monkeypatch.setattr("harness.trainer.os.cpu_count", lambda: 4)  # a core to spare: prefetch
+    monkeypatch.setattr("harness.train.trainer.os.cpu_count", lambda: 4)  # a core to spare: prefetch
     a, b = _policy("tiny"), _policy("tiny")
     settings = TrainSettings(steps=12, batch_size=32, lr=1e-3)
     ra, rb = _train(a, Method(), settings), _train(b, NoPrefetch(), settings)

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import sys
 
-from harness.config import coerce, experiment_name, parse_overrides, pop_bench_and_profile
-from harness.errors import RetainError
+from harness.common.errors import RetainError
+from harness.config.benchmark import coerce, experiment_name, parse_overrides, pop_bench_and_profile
 from harness.report.build import ReportSettings, build_report
 
 KEYS = ("EXPERIMENT", "BENCH", "PROFILE", "results_dir", "log_run")

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harness.bootstrap import Interval, bootstrap_ci
-from harness.errors import RetainError
+from harness.common.errors import RetainError
+from harness.measure.bootstrap import Interval, bootstrap_ci
 from harness.report.groups import Row
 from harness.report.runs import SERIES_KEYS, RunRecord
 

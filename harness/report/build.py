@@ -12,9 +12,9 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from harness.atomic import write_text
-from harness.bootstrap import RESAMPLES
-from harness.errors import RetainError
+from harness.common.atomic import write_text
+from harness.common.errors import RetainError
+from harness.measure.bootstrap import RESAMPLES
 from harness.report import plots
 from harness.report.aggregate import OPTIONAL_NOTES, RowSummary, shown_metrics, summarize
 from harness.report.groups import ABSTRACT_ONLY, build_rows
@@ -28,7 +28,7 @@ from harness.report.table import (
     paper_csv,
     paper_markdown,
 )
-from harness.tracking import tracking_uri
+from harness.track.tracking import tracking_uri
 
 OWNED = (".md", ".csv", ".tex", ".png")  # the kinds of file a build writes into the report folder
 
@@ -195,7 +195,7 @@ BASE_ROW_NOTE = ("base (stage 0): the foundation before any stream stage, the sa
 
 def log_report_run(settings: ReportSettings, files: list[Path], n_runs: int) -> str:
     """A run tagged report=true in the same experiment, holding the report files as artifacts."""
-    from harness.tracking import Tracker
+    from harness.track.tracking import Tracker
 
     tracker = Tracker(settings.results_dir, experiment=settings.experiment)
     run_id = tracker.start_run("report", tags={"report": "true", "benchmark": settings.experiment})

@@ -13,11 +13,11 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from harness.config import NOT_IN_RUN_KEY, QUIET_DEFAULTS, run_label
+from harness.config.benchmark import NOT_IN_RUN_KEY, QUIET_DEFAULTS, run_label
 from harness.report.runs import RunRecord
 
 # config fields that do not change what a run measures (the run key's exclusions in
-# harness.config: where a run is written, how its rollouts are split), or that name the method
+# harness.config.benchmark: where a run is written, how its rollouts are split), or that name the method
 # and seed themselves
 NOT_SETTINGS = set(NOT_IN_RUN_KEY) | {"method_params", "torch_threads"}
 ABSTRACT_ONLY = " (abstract-only reading)"

@@ -4,7 +4,7 @@ stopped at (`until_success`).
 
 Why a table of its own: the paper compares methods held to one target success, on named
 held-out suites (`heldout_groups`), not on retention and plasticity; its columns put Retain's
-rows beside its own. Runs log these figures (harness/metrics.py `paper_metrics`); a run from
+rows beside its own. Runs log these figures (harness/measure/metrics.py `paper_metrics`); a run from
 before them has none, and without any the table is not written.
 """
 
@@ -14,7 +14,7 @@ import ast
 import math
 from dataclasses import dataclass
 
-from harness.bootstrap import Interval, bootstrap_ci
+from harness.measure.bootstrap import Interval, bootstrap_ci
 from harness.report.aggregate import CHECK_SUCCESS, METRICS, Metric
 from harness.report.groups import Row
 from harness.report.runs import RunRecord

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness import figures
-from harness.figures import save
 from harness.report.aggregate import RowSummary, SeriesSummary
+from harness.track import figures
+from harness.track.figures import save
 
 
 def success_heatmap(path: Path, s: RowSummary, benchmark: str) -> None:

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.config import stage_name
-from harness.errors import RetainError
-from harness.tracking import metric_key, quiet_mlflow, run_commits
+from harness.common.errors import RetainError
+from harness.config.benchmark import stage_name
+from harness.track.tracking import metric_key, quiet_mlflow, run_commits
 
 PARENT_TAG = "mlflow.parentRunId"
 # per-step metrics the figures draw (the paper's Eq. 8 sparsity, ConSFT's weighting), read only
@@ -87,7 +87,7 @@ class RunRecord:
 
     @property
     def stage_names(self) -> list[str]:
-        """"foundation", then what each stage trained on (harness.config.stage_name)."""
+        """"foundation", then what each stage trained on (harness.config.benchmark.stage_name)."""
 
         return ["foundation", *(stage_name(i, g) for i, g in enumerate(self.stages, start=1))]
 

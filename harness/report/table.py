@@ -13,7 +13,7 @@ import csv
 import io
 import math
 
-from harness.bootstrap import Interval
+from harness.measure.bootstrap import Interval
 from harness.report.aggregate import Metric, RowSummary, shown_metrics
 from harness.report.paper import BASE_LABEL, PaperTable
 

@@ -13,7 +13,6 @@ from torch import nn
 
 from policies.base import FlowMatchingBase, sinusoidal_embedding
 from policies.flow_matching.configuration import FlowMatchingConfig
-from policies.registry import register_policy
 
 ARCHITECTURE_VERSION = 2  # part of the foundation cache key: bump when the network changes
 
@@ -48,7 +47,6 @@ class ConditionedBlock(nn.Module):
         return h + self.mlp(self.norm(h) + cond)
 
 
-@register_policy("mlp")
 class FlowMatchingPolicy(FlowMatchingBase):
     Config = FlowMatchingConfig
 

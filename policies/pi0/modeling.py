@@ -25,7 +25,6 @@ from torch import nn
 
 from policies.base import FlowMatchingBase, sinusoidal_embedding
 from policies.pi0.configuration import Pi0Config
-from policies.registry import register_policy
 from policies.text_encoder import token_embedding_table
 
 
@@ -103,7 +102,6 @@ class PrefixCache:
     valid: torch.Tensor  # [B, P] bool
 
 
-@register_policy("pi0")
 class Pi0Policy(FlowMatchingBase):
     Config = Pi0Config
     ARCHITECTURE_VERSION = 1  # part of the foundation cache key: bump when the network changes

@@ -1,0 +1,112 @@
+"""The foundation stage: multi-task pre-training, cached by a hash of its config, shared by all
+methods (so every method starts from the same weights), with its stage-0 evaluation."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from harness.common.device import resolve_device
+from harness.common.seeding import derive_seed, generator
+from harness.config.benchmark import BenchConfig
+from harness.data.prepare import BenchmarkData, demo_spec
+from harness.evaluate.rollouts import Evaluator
+from harness.evaluate.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
+from harness.train.trainer import TrainSettings, train_stage
+from methods import Method, TaskContext
+from policies import get_policy, make_config, policy_for_config
+from policies.flow_matching.modeling import ARCHITECTURE_VERSION
+from suites import Suite
+from suites.base import CAMERA_KEYS
+
+FOUNDATION_VERSION = 5  # bump when the training code changes what a cached checkpoint holds
+# (5: instruction embeddings encoded one text at a time, policies/text_encoder.py)
+
+
+@dataclass
+class Foundation:
+    key: str
+    policy_state: dict[str, torch.Tensor]
+    final_loss: float
+    stage0: StageRecord
+
+
+def policy_config(cfg: BenchConfig, suite: Suite):
+    """The `cfg.policy` policy's config for this suite; ValueError on an unknown policy or size."""
+    return make_config(cfg.policy, state_dim=suite.state_dim, action_dim=suite.action_dim,
+                       size=cfg.policy_size, chunk_size=cfg.chunk_size,
+                       n_action_steps=cfg.n_action_steps,
+                       image_keys=CAMERA_KEYS if cfg.cameras else (), image_size=cfg.image_size)
+
+
+def build_policy(cfg: BenchConfig, suite: Suite) -> torch.nn.Module:
+    """A fresh policy on `cfg.device`, compiled when `cfg.compile` (its state dict unchanged)."""
+    policy = policy_for_config(policy_config(cfg, suite)).to(resolve_device(cfg.device))
+    if cfg.compile:
+        policy.compile()
+    return policy
+
+
+def _hash(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def foundation_key(cfg: BenchConfig, suite: Suite, seed: int) -> str:
+    policy = {**policy_config(cfg, suite).__dict__}
+    if cfg.policy != "mlp":  # mlp's keys predate the registry and stay valid
+        policy["name"] = cfg.policy
+        policy["architecture"] = getattr(get_policy(cfg.policy), "ARCHITECTURE_VERSION", 0)
+    device = resolve_device(cfg.device)
+    if device.type != "cpu" or cfg.compile:  # GPU and compiled numerics differ from the CPU's
+        policy["device"] = [device.type, cfg.compile]
+    return _hash({
+        "version": [FOUNDATION_VERSION, ARCHITECTURE_VERSION], "seed": seed, "policy": policy,
+        "demos": [demo_spec(cfg, suite, t, "demo").key() for t in cfg.foundation_tasks],
+        "train": [cfg.foundation_steps, cfg.batch_size, cfg.foundation_lr, cfg.weight_decay,
+                  cfg.grad_clip],
+    })
+
+
+def stage0_key(cfg: BenchConfig, suite: Suite) -> str:
+    tasks = cfg.all_tasks()
+    spec = {"eval": [cfg.eval_episodes, cfg.max_episode_steps, cfg.n_action_steps, cfg.eval_shards],
+            "heldout": [demo_spec(cfg, suite, t, "heldout").key() for t in tasks]}
+    if cfg.spatial_episodes > 0:  # off, the key (and the cached record) is as before the probe
+        spec["spatial"] = [cfg.spatial_episodes, suite.spatial_probe_version]
+    return _hash(spec)
+
+
+def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData, seed: int,
+                             evaluator: Evaluator, log=None) -> Foundation:
+    key = foundation_key(cfg, suite, seed)
+    directory = Path(cfg.cache_dir) / "foundation" / key
+    weights, stage0_path = directory / "policy.pt", directory / f"stage0-{stage0_key(cfg, suite)}.pt"
+    torch.manual_seed(derive_seed(seed, "foundation"))  # the initial weights depend on the seed only
+    policy = build_policy(cfg, suite)
+    if weights.exists():
+        saved = load_checkpoint(weights)
+        policy.load_state_dict(saved["policy"])
+        final_loss = saved["final_loss"]
+    else:
+        train = data.combined(cfg.foundation_tasks)
+        policy.state_norm.fit(train.obs["state"])
+        policy.action_norm.fit(train.actions.flatten(0, 1))
+        ctx = TaskContext(stage=0, task="foundation", data=train, policy=policy,
+                          foundation_loss=float("nan"), steps=cfg.foundation_steps)
+        settings = TrainSettings(cfg.foundation_steps, cfg.batch_size, cfg.foundation_lr,
+                                 cfg.weight_decay, cfg.grad_clip)
+        result = train_stage(ctx, Method(), settings, generator(seed, "foundation"), log)
+        final_loss = result.final_loss
+        save_checkpoint(weights, {"policy": policy.state_dict(), "final_loss": final_loss,
+                                  "config": cfg.as_dict()})
+    if stage0_path.exists():
+        stage0 = StageRecord(**load_checkpoint(stage0_path))
+    else:
+        stage0 = evaluate_stage(policy, evaluator, cfg, data, seed, 0, "foundation")
+        stage0.train_loss = final_loss
+        save_checkpoint(stage0_path, stage0.as_dict())
+    return Foundation(key, policy.state_dict(), final_loss, stage0)

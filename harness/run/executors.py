@@ -1,0 +1,170 @@
+"""Where a comparison's jobs run: `serial` (one after another in this process), `local`
+(parallel worker processes on this machine, the default) or `ray` (Ray tasks on the cluster at
+RAY_ADDRESS, or on a Ray started in this process).
+
+Every executor runs the same job functions (harness.run.jobs) and yields each result as its job
+finishes, so results are identical whichever runs them. Retries are Ray's own: a task whose
+worker is lost runs again, and the job continues from its last finished stage.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import shutil
+import signal
+import tempfile
+from collections.abc import Callable, Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+
+from harness.common.errors import USER_ERRORS
+from harness.config.benchmark import BenchConfig
+from harness.run.jobs import with_absolute_paths
+
+RAY_RETRIES = 3  # attempts after a lost worker (a Python exception is not retried)
+
+
+def available_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class Slots:
+    """How a comparison's jobs share the machine: jobs at once, evaluation workers per job."""
+
+    parallel: int
+    eval_workers: int
+
+
+def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None) -> Slots:
+    """`jobs` at once (0: as many as the cores allow, each job keeping max(torch_threads,
+    its evaluation workers) cores busy), never more than there are jobs; a job's evaluation
+    workers are `eval_workers`, or (when 0) its share of the cores (one on Ray, whose
+    machines the cores of this one say nothing about)."""
+    cores = cores or available_cores()
+    if cfg.executor == "serial":
+        return Slots(1, cfg.eval_workers or cores)
+    if cfg.executor == "ray":  # Ray places the tasks; each asks for what it uses
+        return Slots(min(cfg.jobs or n_jobs, n_jobs), cfg.eval_workers or 1)
+    per_job = max(cfg.torch_threads, cfg.eval_workers or 1)
+    parallel = cfg.jobs or max(1, cores // per_job)
+    parallel = max(1, min(parallel, n_jobs))
+    workers = cfg.eval_workers or max(1, cores // parallel)
+    return Slots(parallel, workers)
+
+
+class SerialExecutor:
+    """One job after another in this process, sharing one evaluator and the loaded data."""
+
+    def __init__(self, cfg: BenchConfig, suite, data, workers: int):
+        from harness.evaluate.rollouts import Evaluator
+        from harness.evaluate.stages import eval_settings
+
+        self.data = data
+        self.evaluator = Evaluator(suite, eval_settings(cfg), workers, cfg.torch_threads)
+
+    def run(self, fn: Callable, jobs: list) -> Iterator[tuple[int, object]]:
+        for i, job in enumerate(jobs):
+            yield i, fn(job, self.evaluator, self.data)
+
+    def close(self) -> None:
+        self.evaluator.close()
+
+
+class LocalExecutor:
+    """Jobs in parallel worker processes (spawned: no state inherited from this one)."""
+
+    def __init__(self, parallel: int):
+        self.pool = ProcessPoolExecutor(parallel, mp_context=get_context("spawn"),
+                                        initializer=_die_with_parent)
+
+    def run(self, fn: Callable, jobs: list) -> Iterator[tuple[int, object]]:
+        futures = {self.pool.submit(fn, job): i for i, job in enumerate(jobs)}
+        pending = set(futures)
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    yield futures[future], future.result()
+        finally:
+            for future in pending:
+                future.cancel()
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class RayExecutor:
+    """Each job a Ray task asking for the cores it uses, retried (and so continued) when its
+    worker is lost. The cluster at RAY_ADDRESS, or a Ray started here with a temp folder of
+    its own (a stale shared one can hang `ray.init`) and all traffic on 127.0.0.1."""
+
+    def __init__(self, cores: int, max_in_flight: int = 0):
+        import ray
+
+        self.ray, self.max_in_flight, self.temp_dir = ray, max_in_flight, None
+        env = {"runtime_env": {"env_vars": {"PYTHONPATH": _source_root()}}}
+        if os.environ.get("RAY_ADDRESS"):
+            ray.init(address=os.environ["RAY_ADDRESS"], logging_level="WARNING", **env)
+        else:
+            self.temp_dir = tempfile.mkdtemp(prefix="retain-ray-")
+            ray.init(address="local", num_cpus=cores, _temp_dir=self.temp_dir,
+                     _node_ip_address="127.0.0.1", include_dashboard=False,
+                     logging_level="WARNING", **env)
+
+    def run(self, fn: Callable, jobs: list) -> Iterator[tuple[int, object]]:
+        from ray.exceptions import RayTaskError
+
+        ray = self.ray
+        remote = ray.remote(fn)
+        queue = list(enumerate(jobs))
+        running: dict = {}
+        limit = self.max_in_flight or len(jobs)
+        try:
+            while queue or running:
+                while queue and len(running) < limit:
+                    i, job = queue.pop(0)
+                    task = remote.options(num_cpus=job.cpus, num_gpus=0, max_retries=RAY_RETRIES,
+                                          name=f"{job.label} seed {job.seed}")
+                    running[task.remote(with_absolute_paths(job))] = i
+                done, _ = ray.wait(list(running), num_returns=1)
+                i = running.pop(done[0])
+                try:
+                    yield i, ray.get(done[0])
+                except RayTaskError as exc:
+                    cause = exc.cause
+                    raise (cause if isinstance(cause, USER_ERRORS) else exc) from None
+        finally:
+            for ref in running:
+                ray.cancel(ref, force=True)
+
+    def close(self) -> None:
+        self.ray.shutdown()
+        if self.temp_dir:
+            shutil.rmtree(self.temp_dir, ignore_errors=True)
+
+
+def make_executor(cfg: BenchConfig, slots: Slots, suite, data):
+    """The executor `cfg.executor` names; one parallel slot runs the jobs here, as serial."""
+    if cfg.executor == "ray":
+        return RayExecutor(available_cores(), cfg.jobs)
+    if cfg.executor == "local" and slots.parallel > 1:
+        return LocalExecutor(slots.parallel)
+    return SerialExecutor(cfg, suite, data, slots.eval_workers)
+
+
+def _source_root() -> str:
+    """The folder that holds harness/, methods/, ...: a Ray worker imports this code."""
+    return str(Path(__file__).resolve().parents[2])
+
+
+def _die_with_parent() -> None:
+    """A local worker is SIGKILLed when the process that started it dies (Linux), so a killed
+    comparison leaves no job running on beside its rerun."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
