@@ -1,5 +1,6 @@
 """Retain's harness: the pipeline that runs a benchmark, one subpackage per step, in data-flow
-order (each may import only the ones above it in this list, and suites and policies):
+order. Each may import the ones above it in this list, never one below; suites, policies and
+methods sit between them (pyproject.toml's import-linter layers give the exact order):
 
 - `common`: errors, atomic files, seeds, the device; `config`: a benchmark's settings
 - `data`: demonstrations (HDF5, LeRobot) and the training data contract methods read

@@ -16,7 +16,7 @@ from harness.measure.updates import paper_sparsity, update_stats
 from harness.perf.throughput import _policy, synthetic_data
 from harness.protocol.stream import StageWatch
 from harness.run.cli import main
-from harness.train.optim import FlatAdamW
+from harness.train.optim import ClippedAdamW
 from harness.train.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
 from methods.base import snapshot
@@ -97,12 +97,12 @@ def test_eq8_sparsity_against_a_hand_computation():
 def test_adam_eps_share_counts_scalars_whose_second_moment_is_below_eps():
     flat = torch.nn.Parameter(torch.zeros(4))
     flat.grad = torch.tensor([0.0, 1e-9, 1e-7, 1.0])
-    optimizer = FlatAdamW(flat, lr=1e-3, weight_decay=0.0, grad_clip=0.0, betas=(0.9, 0.95),
+    optimizer = ClippedAdamW(flat, lr=1e-3, weight_decay=0.0, grad_clip=0.0, betas=(0.9, 0.95),
                           eps=1e-8)
     optimizer.step()  # v_hat = g^2 after one step: sqrt(v_hat) = |g|
     assert optimizer.frac_eps_dominated() == 0.5
     flat.grad.copy_(torch.tensor([0.0, 1e-9, 1e-7, 1.0]))
-    optimizer.eps = 1e-6
+    optimizer.adamw.param_groups[0]["eps"] = 1e-6
     assert optimizer.frac_eps_dominated() == 0.75
 
 

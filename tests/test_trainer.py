@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from harness.perf.throughput import _policy, synthetic_data
-from harness.train.optim import FlatAdamW
+from harness.train.optim import ClippedAdamW
 from harness.train.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
 
@@ -66,13 +66,14 @@ def test_parameters_get_their_own_storage_back_and_frozen_ones_stay_put():
 
 
 @pytest.mark.parametrize("betas, eps", [((0.9, 0.999), 1e-8), ((0.9, 0.95), 1e-6)])
-def test_flat_adamw_matches_torch_adamw_after_clipping(betas, eps):
+def test_clipped_adamw_matches_clipping_then_the_for_loop_adamw(betas, eps):
     g = torch.Generator().manual_seed(0)
     ours = torch.nn.Parameter(torch.randn(1000, generator=g))
     theirs = torch.nn.Parameter(ours.detach().clone())
     ours.grad = torch.zeros_like(ours)
-    optimizer = FlatAdamW(ours, lr=1e-2, weight_decay=0.1, grad_clip=1.0, betas=betas, eps=eps)
-    reference = torch.optim.AdamW([theirs], lr=1e-2, weight_decay=0.1, betas=betas, eps=eps)
+    optimizer = ClippedAdamW(ours, lr=1e-2, weight_decay=0.1, grad_clip=1.0, betas=betas, eps=eps)
+    reference = torch.optim.AdamW([theirs], lr=1e-2, weight_decay=0.1, betas=betas, eps=eps,
+                                  foreach=False)
     for scale in (10.0, 0.01, 5.0, 0.001):  # norms far above and below the clip
         grad = scale * torch.randn(1000, generator=g)
         ours.grad.copy_(grad)

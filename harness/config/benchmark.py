@@ -267,9 +267,9 @@ def setting_text(value: Any) -> str:
 
 
 def class_label(spec: str) -> str:
-    """`/home/me/exp/conv_policy.py:ConvPolicy` -> `ConvPolicy@3f9a1c`: short enough for a table
-    and a folder name, and two different files never share one (the hash is of the file's
-    absolute path). A registered name or `module:Class` is kept as it is."""
+    """`/home/me/exp/conv_policy.py:ConvPolicy` -> `ConvPolicy@` and six hex digits: short enough
+    for a table and a folder name, and two different files never share one (the digits hash the
+    file's absolute path). A registered name or `module:Class` is kept as it is."""
     module, sep, name = spec.rpartition(":")
     if not (sep and module.endswith(".py")):
         return spec

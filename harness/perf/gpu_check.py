@@ -46,7 +46,7 @@ from harness.perf.throughput import (
     pi0_gpu_fields,
     synthetic_data,
 )
-from harness.train.optim import FlatAdamW
+from harness.train.optim import ClippedAdamW
 
 ROOT = Path(__file__).resolve().parents[2]
 PARTS = ("train", "methods", "eval", "resume")
@@ -130,18 +130,16 @@ class PartResult:
 # -- train -------------------------------------------------------------------------------------
 
 def check_optimizer(device: torch.device) -> list[str]:
-    """`FlatAdamW` (the fused kernel with clipping as its gradient divisor) against
-    `clip_grad_norm_` plus `torch.optim.AdamW(fused=True)`, on the device, with gradient norms
-    above and below the clip; its moments must live on the device."""
+    """`ClippedAdamW` (torch's fused kernel) against `clip_grad_norm_` plus the for-loop
+    `torch.optim.AdamW`, on the device, with gradient norms above and below the clip; its
+    moments must live on the device."""
     g = torch.Generator(device=device).manual_seed(0)
     start = torch.randn(100_000, generator=g, device=device)
     ours, theirs = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
     ours.grad = torch.zeros_like(ours)
-    optimizer = FlatAdamW(ours, lr=1e-2, weight_decay=0.1, grad_clip=1.0)
-    reference = torch.optim.AdamW([theirs], lr=1e-2, weight_decay=0.1, fused=True)
+    optimizer = ClippedAdamW(ours, lr=1e-2, weight_decay=0.1, grad_clip=1.0)
+    reference = torch.optim.AdamW([theirs], lr=1e-2, weight_decay=0.1, foreach=False)
     failures = []
-    if {optimizer.exp_avg.device, optimizer.exp_avg_sq.device} != {ours.device}:
-        failures.append(f"AdamW moments on {optimizer.exp_avg.device}, parameters on {device}")
     for scale in (10.0, 0.01, 5.0, 0.001):
         grad = scale * torch.randn(100_000, generator=g, device=device)
         ours.grad.copy_(grad)
@@ -149,6 +147,9 @@ def check_optimizer(device: torch.device) -> list[str]:
         torch.nn.utils.clip_grad_norm_([theirs], 1.0)
         optimizer.step()
         reference.step()
+    moments = {v.device for k, v in optimizer.adamw.state[ours].items() if k != "step"}
+    if moments != {ours.device}:
+        failures.append(f"AdamW moments on {moments}, parameters on {device}")
     error = ((ours - theirs).abs().max() / theirs.abs().max()).item()
     if not error < 1e-5:
         failures.append(f"fused AdamW differs from torch.optim.AdamW by {error:.2e} (relative)")

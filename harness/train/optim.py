@@ -1,9 +1,9 @@
-"""The parameter update: global-norm clipping and AdamW over one flat buffer.
+"""The parameter update: global-norm clipping and torch's fused AdamW over one flat buffer.
 
 On a small CPU policy the update is memory-bound (parameters, gradients and both moments, about
 17 MB a default-policy step through a 4 MB cache) and its per-call overhead is a tenth of a tiny
-policy's step, so it is a handful of kernel calls over one flat buffer: the norm, the fused AdamW
-kernel (which also applies the clipping, as its gradient divisor) and zeroing the gradient.
+policy's step, so the parameters live in one flat buffer and the update is a handful of kernel
+calls over it: the norm and the clipping, the fused AdamW kernel, zeroing the gradient.
 """
 
 from __future__ import annotations
@@ -39,38 +39,31 @@ def contiguous_parameters(params: list[torch.nn.Parameter]) -> Iterator[torch.nn
             p.grad = None
 
 
-class FlatAdamW:
-    """`clip_grad_norm_` then `torch.optim.AdamW(fused=True)` for one flat parameter, then the
-    gradient zeroed, without `Optimizer.step`'s per-call bookkeeping (a third of the update on
-    the tiny policy) or a separate pass to scale the gradient. `torch._fused_adamw_` is the kernel
-    `AdamW(fused=True)` calls; `tests/test_trainer.py` holds this class to `torch.optim.AdamW`, so
-    a torch upgrade that changes the kernel fails there. The kernel has CPU and CUDA versions;
-    every tensor it gets lives on the parameters' device."""
+class ClippedAdamW:
+    """The update a training step ends with: `clip_grad_norm_`, then torch's
+    `AdamW(fused=True)`, then the gradient zeroed in place (backward accumulates into the flat
+    gradient's views, so it is never set to None). Over one flat parameter each is one kernel
+    call, on the CPU and on CUDA."""
 
     def __init__(self, flat: torch.nn.Parameter, lr: float, weight_decay: float,
                  grad_clip: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
-        self.flat, self.grad_clip, self.beta2, self.eps = flat, grad_clip, betas[1], eps
-        self.hyper = dict(lr=lr, beta1=betas[0], beta2=betas[1], weight_decay=weight_decay,
-                          eps=eps, amsgrad=False, maximize=False)
-        self.exp_avg, self.exp_avg_sq = torch.zeros_like(flat), torch.zeros_like(flat)
-        # the kernel reads it, as in torch, from the parameters' device (CPU or CUDA)
-        self.step_count = torch.zeros((), dtype=torch.float32, device=flat.device)
+        self.flat, self.grad_clip = flat, grad_clip
+        self.adamw = torch.optim.AdamW([flat], lr=lr, betas=betas, eps=eps,
+                                       weight_decay=weight_decay, fused=True)
 
     def step(self) -> None:
-        grad = self.flat.grad
-        divisor = None  # the kernel divides the gradient by it before the update
         if self.grad_clip > 0:
-            divisor = ((torch.linalg.vector_norm(grad) + 1e-6) / self.grad_clip).clamp_min(1.0)
-        self.step_count += 1
-        torch._fused_adamw_([self.flat.data], [grad], [self.exp_avg], [self.exp_avg_sq], [],
-                            [self.step_count], grad_scale=divisor, **self.hyper)
-        grad.zero_()  # backward accumulates into it in place
+            torch.nn.utils.clip_grad_norm_(self.flat, self.grad_clip)
+        self.adamw.step()
+        self.flat.grad.zero_()
 
     @torch.no_grad()
     def frac_eps_dominated(self) -> float:
         """The share of scalars whose update denominator sqrt(v_hat) + eps is set by eps:
         sqrt(v_hat) < eps, where v_hat is the bias-corrected second moment."""
-        correction = 1 - self.beta2 ** float(self.step_count)
-        if correction <= 0:
+        state = self.adamw.state.get(self.flat)
+        if not state:
             return float("nan")
-        return (self.exp_avg_sq < self.eps ** 2 * correction).float().mean().item()
+        group = self.adamw.param_groups[0]
+        correction = 1 - group["betas"][1] ** float(state["step"])
+        return (state["exp_avg_sq"] < group["eps"] ** 2 * correction).float().mean().item()

@@ -15,7 +15,7 @@ import torch
 
 from harness.common.device import autocast
 from harness.common.errors import NonFiniteLoss
-from harness.train.optim import FlatAdamW, contiguous_parameters
+from harness.train.optim import ClippedAdamW, contiguous_parameters
 from methods import Method, TaskContext
 
 
@@ -94,7 +94,7 @@ def train_stage(
     # them wait on each other (a default step took 2x as long with two threads on two cores).
     prefetch = method.prefetch_batches and torch.get_num_threads() < (os.cpu_count() or 1)
     with contiguous_parameters(params) as flat, ThreadPoolExecutor(1) as data_thread:
-        optimizer = FlatAdamW(flat, settings.lr, settings.weight_decay, settings.grad_clip,
+        optimizer = ClippedAdamW(flat, settings.lr, settings.weight_decay, settings.grad_clip,
                               settings.betas, settings.eps)
         next_batch: Future | None = None
         for step in range(settings.steps):
