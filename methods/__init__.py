@@ -43,6 +43,10 @@ def get_method(spec: str) -> type[Method]:
         cls = load_class(spec, "method")
         if not (isinstance(cls, type) and issubclass(cls, Method)):
             raise ValueError(f"{spec!r} is not a method: it must subclass methods.Method")
+        _load_builtins()
+        if _REGISTRY.get(cls.name, cls) is not cls:  # its runs would be filed as that method's
+            raise ValueError(f"{spec!r} needs a name of its own (a class attribute such as "
+                             f"name = \"my_method\"): {cls.name!r} is a built-in method's")
         return cls
     _load_builtins()
     if spec not in _REGISTRY:

@@ -58,3 +58,12 @@ def test_documented_example_runs_by_file_path_and_rejects_a_typo(tmp_path):
 def test_a_class_that_is_not_a_method_is_refused(tmp_path, spec, message):
     proc = _bench(tmp_path, f"METHOD={spec}")
     assert proc.returncode != 0 and message in proc.stderr and proc.stderr.strip().count("\n") == 0
+
+
+def test_a_users_method_without_a_name_of_its_own_is_refused(tmp_path):
+    """It would inherit "sft" and be filed, labelled and reported as the built-in SFT."""
+    plugin = tmp_path / "nameless.py"
+    plugin.write_text("from methods.consft import ConSFT\n\n\nclass Tweaked(ConSFT):\n    pass\n")
+    proc = _bench(tmp_path, f"METHOD={plugin}:Tweaked")
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
+    assert "needs a name of its own" in proc.stderr and "'consft' is a built-in" in proc.stderr
