@@ -122,3 +122,37 @@ def test_sqlite_locked_past_the_busy_timeout_is_retried_and_loses_nothing(tmp_pa
     assert len(notices) == result.retried  # one line per retry, and nothing else
     assert all(re.fullmatch(r"\[retain\] tracking: database is locked during \w+; retry \d+ in "
                             r"[\d.]+s", line) for line in notices), notices
+
+
+def test_an_answer_cut_off_mid_body_is_retried_only_where_a_second_send_is_safe(monkeypatch):
+    """urllib3 retries up to the response headers; a server killed while sending the body
+    leaves `Connection broken` to the caller, which Retain retries for idempotent calls."""
+    from harness.common.errors import RetainError
+    from harness.track import tracking
+
+    broken = ("API request to http://127.0.0.1:5000/api/2.0/mlflow/runs/log-batch failed with "
+              "exception ('Connection broken: IncompleteRead(0 bytes read, 2 more expected)')")
+
+    class Client:
+        calls = {"log_batch": 0, "create_run": 0}
+
+        def log_batch(self):
+            self.calls["log_batch"] += 1
+            if self.calls["log_batch"] <= 2:
+                raise RuntimeError(broken)
+            return "stored"
+
+        def create_run(self):
+            self.calls["create_run"] += 1
+            raise RuntimeError(broken)
+
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "2")
+    monkeypatch.setattr(tracking.time, "sleep", lambda s: None)
+    client = tracking._Retrying(Client(), "http://127.0.0.1:5000")
+    assert client.log_batch() == "stored" and Client.calls["log_batch"] == 3
+    with pytest.raises(RetainError, match="create_run failed after 2 retries: .*Connection broken"):
+        client.create_run()
+    assert Client.calls["create_run"] == 1  # never sent twice: it could make a second run
+    Client.calls["log_batch"] = -5  # broken more often than the retries allow: one-line error
+    with pytest.raises(RetainError, match="log_batch failed after 2 retries"):
+        client.log_batch()

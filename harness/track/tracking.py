@@ -276,7 +276,8 @@ class BatchedMetrics:
 class _Retrying:
     """Calls through to MlflowClient. A SQLite lock held past MLflow's busy timeout (20 s) is
     retried with jittered backoff, a line each, for up to `lock_wait` seconds; HTTP errors were
-    retried inside MLflow already. A call that still fails raises a one-line RetainError naming
+    retried inside MLflow already, except an answer cut off mid-body by a server that died,
+    which is retried here for every call that is safe to send twice. A call that still fails raises a one-line RetainError naming
     the store and the call; any other error is raised as it is."""
 
     def __init__(self, client, uri: str, lock_wait: float = LOCK_WAIT_S):
@@ -295,6 +296,15 @@ class _Retrying:
                     return method(*args, **kwargs)
                 except Exception as exc:  # noqa: BLE001 - SQLAlchemy's OperationalError, wrapped
                     text = str(exc)
+                    if ("Connection broken" in text and name not in NOT_IDEMPOTENT
+                            and tries <= _http_retries()):
+                        # the server died after answering, mid-body: urllib3 retries only up to
+                        # the headers, so this call is retried here (the store keeps one copy)
+                        delay = min(32.0, 2.0 ** (tries - 1))
+                        log.warning("[retain] tracking: connection broken during %s; retry %d "
+                                    "in %.0fs", name, tries, delay)
+                        time.sleep(delay)
+                        continue
                     if "API request to" in text and "failed with" in text:
                         raise RetainError(
                             f"tracking server {self._uri}: {name} failed after "
@@ -314,6 +324,15 @@ class _Retrying:
                     time.sleep(delay)
 
         return call
+
+
+# Calls that must not be sent twice: a retry after a lost answer could make a second run
+NOT_IDEMPOTENT = frozenset({"create_run", "create_experiment"})
+
+
+def _http_retries() -> int:
+    return int(os.environ.get("MLFLOW_HTTP_REQUEST_MAX_RETRIES") or HTTP_RETRY[
+        "MLFLOW_HTTP_REQUEST_MAX_RETRIES"])
 
 
 def _first_line(exc: BaseException) -> str:
