@@ -270,11 +270,17 @@ def class_label(spec: str) -> str:
     """`/home/me/exp/conv_policy.py:ConvPolicy` -> `ConvPolicy@` and six hex digits: short enough
     for a table and a folder name, and two different files never share one (the digits hash the
     file's absolute path). A registered name or `module:Class` is kept as it is."""
-    module, sep, name = spec.rpartition(":")
-    if not (sep and module.endswith(".py")):
+    parsed = file_class_spec(spec)
+    if parsed is None:
         return spec
-    path = str(Path(module).expanduser().resolve())
-    return f"{name}@{hashlib.sha256(path.encode()).hexdigest()[:6]}"
+    path, name = parsed
+    return f"{name}@{hashlib.sha256(str(path).encode()).hexdigest()[:6]}"
+
+
+def file_class_spec(spec: str) -> tuple[Path, str] | None:
+    """`path/to/file.py:Class` -> (the file's absolute path, "Class"); None for any other spec."""
+    module, sep, name = spec.rpartition(":")
+    return (Path(module).expanduser().resolve(), name) if sep and module.endswith(".py") else None
 
 
 def changed_settings(cfg: BenchConfig, base: BenchConfig) -> dict[str, str]:

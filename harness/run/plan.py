@@ -7,7 +7,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import itertools
-import os
 from dataclasses import dataclass, field
 
 from harness.common.errors import RetainError
@@ -17,6 +16,7 @@ from harness.config.benchmark import (
     BenchConfig,
     base_config,
     changed_settings,
+    file_class_spec,
     resolve,
     run_label,
     set_field,
@@ -126,10 +126,8 @@ def plan(args: list[str]) -> Plan:
 
 def _portable(spec: str) -> str:
     """`file.py:Class` with an absolute path, so a job in another process finds the file."""
-    module, sep, cls = spec.rpartition(":")
-    if sep and module.endswith(".py"):
-        return f"{os.path.abspath(module)}:{cls}"
-    return spec
+    parsed = file_class_spec(spec)
+    return f"{parsed[0]}:{parsed[1]}" if parsed else spec
 
 
 def _changed(run_cfg: BenchConfig, base: BenchConfig, method: Method, own: dict,

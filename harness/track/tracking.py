@@ -308,7 +308,7 @@ class _Retrying:
                     if "API request to" in text and "failed with" in text:
                         raise RetainError(
                             f"tracking server {self._uri}: {name} failed after "
-                            f"{os.environ.get('MLFLOW_HTTP_REQUEST_MAX_RETRIES')} retries: "
+                            f"{_http_retries()} retries: "
                             f"{_first_line(exc)}") from None
                     if "is locked" not in text:
                         raise
