@@ -15,6 +15,9 @@ import pytest
 from harness.config.benchmark import BenchConfig
 from harness.evaluate.stages import StageRecord
 from harness.protocol.stream import RunResult, summary_metrics
+from harness.report.groups import Row
+from harness.report.paper import paired_rows
+from harness.report.runs import RunRecord
 from harness.run.jobs import provenance_params, stage_metrics
 from methods.consft import ConSFTConfig
 
@@ -384,3 +387,46 @@ def test_stage_metrics_log_steps_and_the_last_check():
     assert "stage_check_success" not in stage_metrics(cfg, stage0)
     m = stage_metrics(cfg, dataclasses.replace(stage1, check_steps=[3, 6], check_success=[0.2, 0.5]))
     assert m["stage_steps"] == 10 and m["stage_check_success"] == 0.5
+
+
+def test_paired_against_sft_seed_by_seed(report):
+    """consft minus sft at each seed (hand computation from FINAL), then the mean over seeds;
+    the abstract-only consft logged no paper metrics, so it has no paired row."""
+    out, files = report
+    assert "paper_paired.csv" in files
+    rows = {r["label"]: r for r in csv.DictReader(io.StringIO(
+        (out / "paper_paired.csv").read_text()))}
+    assert list(rows) == ["consft"]
+    consft = rows["consft"]
+    assert consft["reference"] == "sft" and consft["seeds"] == "0;1"
+    # held-out avg: seed 0 consft 0.4 - sft 0.1; seed 1 consft 0.4 - sft 0.25
+    assert [float(v) for v in consft["heldout_avg_diff_per_seed"].split(";")] == \
+        pytest.approx([0.3, 0.15])
+    assert float(consft["heldout_avg_diff_mean"]) == pytest.approx(0.225)
+    assert 0.15 - 1e-9 <= float(consft["heldout_avg_diff_ci_low"]) \
+        < 0.225 < float(consft["heldout_avg_diff_ci_high"]) <= 0.3 + 1e-9
+    # target: seed 0 0.9 - 0.9, seed 1 0.9 - 0.8
+    assert float(consft["target_diff_mean"]) == pytest.approx(0.05)
+    md = (out / "paper_table.md").read_text()
+    assert "## Against sft, seed by seed" in md
+    assert "| method | seeds | Δ target | Δ held-out avg | per seed (held-out avg) |" in md
+    assert "| consft | 2 | +0.050 [+0.000, +0.100] | +0.225 [+0.150, +0.300] | " \
+           "0: +0.300, 1: +0.150 |" in md
+
+
+def _run(method: str, seed: int, target: float, heldout: float) -> RunRecord:
+    return RunRecord(f"{method}{seed}", method, seed, "", 0, {}, {"target": target,
+                     "heldout_avg": heldout}, [], [], np.zeros((1, 1)), [])
+
+
+def test_paired_rows_use_only_the_shared_seeds():
+    sft = Row("sft", "sft", "", [_run("sft", s, 0.9, 0.5 + 0.1 * s) for s in (0, 1, 2)], [])
+    er = Row("er", "er", "", [_run("er", s, 0.8, 0.9) for s in (1, 2, 3)], [0])
+    nan = Row("ewc", "ewc", "", [_run("ewc", 0, 0.7, float("nan"))], [1, 2])
+    (paired,) = paired_rows([er, sft, nan])
+    assert paired.label == "er" and paired.seeds == [1, 2]
+    assert paired.per_seed["heldout_avg"] == pytest.approx([0.3, 0.2])
+    assert paired.per_seed["target"] == pytest.approx([-0.1, -0.1])
+    assert paired.cells["heldout_avg"].mean == pytest.approx(0.25)
+    # no sft row: nothing to pair against
+    assert paired_rows([er, nan]) == []

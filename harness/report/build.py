@@ -18,13 +18,15 @@ from harness.measure.bootstrap import RESAMPLES
 from harness.report import plots
 from harness.report.aggregate import OPTIONAL_NOTES, RowSummary, shown_metrics, summarize
 from harness.report.groups import ABSTRACT_ONLY, build_rows
-from harness.report.paper import PaperTable, paper_columns, paper_table
+from harness.report.paper import REFERENCE, PaperTable, paper_columns, paper_table
 from harness.report.runs import experiment_id, load_runs, open_client
 from harness.report.table import (
     csv_table,
     heading,
     latex_table,
     markdown_table,
+    paired_csv,
+    paired_markdown,
     paper_csv,
     paper_markdown,
 )
@@ -95,6 +97,8 @@ def write_report(out: Path, summaries: list[RowSummary], benchmark: str,
     if paper is not None:
         texts["paper_table.md"] = paper_table_markdown(paper, summaries, benchmark)
         texts["paper_table.csv"] = paper_csv(paper, summaries)
+        if paper.paired:
+            texts["paper_paired.csv"] = paired_csv(paper)
     for name, text in texts.items():
         write_text(out / name, text)
         written.append(out / name)
@@ -185,8 +189,19 @@ def paper_table_markdown(paper: PaperTable, summaries: list[RowSummary], benchma
                      f"{', '.join(map(str, paper.differing_seeds))} logged different stage-0 "
                      "values (different foundations); the base row takes their mean.")
     lines += [f"- {heading(m)}: {m.note}." for m in paper.columns]
+    if paper.paired:
+        lines += ["", f"## Against {REFERENCE}, seed by seed", "", PAIRED_NOTE, "",
+                  paired_markdown(paper)]
     lines += ["", "How to read it: `docs/reports.md`.", ""]
     return "\n".join(lines)
+
+
+PAIRED_NOTE = (f"Each row's value minus {REFERENCE}'s at the same seed (the same foundation, the "
+               "same evaluation episodes), then the mean difference over the seeds both rows "
+               "have and its 95% bootstrap interval (no interval with one seed). The "
+               "foundation's own seed-to-seed spread cancels in the difference; an interval that "
+               f"contains 0 means these seeds do not tell the row from {REFERENCE}. Also in "
+               "paper_paired.csv.")
 
 
 BASE_ROW_NOTE = ("base (stage 0): the foundation before any stream stage, the same checkpoint "

@@ -22,6 +22,18 @@ from harness.report.runs import RunRecord
 BASE_LABEL = "base (stage 0)"
 HELDOUT = "heldout/"  # the per-suite final metrics: heldout/<suite>, base_heldout/<suite>
 SAME = 1e-9  # stage-0 values of one seed further apart than this come from different foundations
+REFERENCE = "sft"  # the row every other row is paired against
+PAIRED = ("target", "heldout_avg")  # matched plasticity, then the paper's retention
+
+
+@dataclass(frozen=True)
+class PairedRow:
+    """One row minus the reference row (sft) on the seeds both have."""
+
+    label: str
+    seeds: list[int]
+    per_seed: dict[str, list[float]]  # column key -> the difference at each of `seeds`
+    cells: dict[str, Interval]  # column key -> mean difference and its interval over the seeds
 
 
 @dataclass(frozen=True)
@@ -30,6 +42,7 @@ class PaperTable:
     base: dict[str, Interval]  # column key -> its stage-0 value over seeds (score columns only)
     base_seeds: list[int]  # seeds behind the base row
     differing_seeds: list[int]  # seeds whose runs logged different stage-0 values
+    paired: list[PairedRow]  # each row against sft, seed by seed; [] without an sft row
 
 
 def heldout_suites(runs: list[RunRecord]) -> list[str]:
@@ -98,4 +111,34 @@ def paper_table(rows: list[Row], columns: list[Metric]) -> PaperTable:
                     differing.add(seed)
         base[column.key] = bootstrap_ci(per_seed)
     shown = [s for s in seeds if any(r.seed == s and "base_target" in r.metrics for r in runs)]
-    return PaperTable(columns, base, shown, sorted(differing))
+    return PaperTable(columns, base, shown, sorted(differing), paired_rows(rows))
+
+
+def paired_rows(rows: list[Row]) -> list[PairedRow]:
+    """Each row's target and held-out average minus sft's, seed by seed, then the mean difference
+    and its bootstrap interval over the seeds both rows have.
+
+    Why paired: every method of a seed starts from that seed's foundation and is evaluated on the
+    same episodes, so the seed-to-seed spread of the foundation cancels in the difference; two
+    rows' separate intervals overlap long after their difference is clear of zero."""
+    reference = next((row for row in rows if row.label == REFERENCE), None)
+    if reference is None:
+        return []
+    ref = {run.seed: run.metrics for run in reference.runs}
+    out = []
+    for row in rows:
+        if row is reference:
+            continue
+        seeds = [run.seed for run in row.runs if run.seed in ref
+                 and all(_has(run.metrics, k) and _has(ref[run.seed], k) for k in PAIRED)]
+        if not seeds:
+            continue
+        mine = {run.seed: run.metrics for run in row.runs}
+        per_seed = {k: [mine[s][k] - ref[s][k] for s in seeds] for k in PAIRED}
+        out.append(PairedRow(row.label, seeds, per_seed,
+                             {k: bootstrap_ci(v) for k, v in per_seed.items()}))
+    return out
+
+
+def _has(metrics: dict[str, float], key: str) -> bool:
+    return key in metrics and not math.isnan(metrics[key])

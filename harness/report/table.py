@@ -15,7 +15,7 @@ import math
 
 from harness.measure.bootstrap import Interval
 from harness.report.aggregate import Metric, RowSummary, shown_metrics
-from harness.report.paper import BASE_LABEL, PaperTable
+from harness.report.paper import BASE_LABEL, PAIRED, REFERENCE, PaperTable
 
 DIGITS = 3
 
@@ -96,6 +96,48 @@ def paper_csv(table: PaperTable, summaries: list[RowSummary]) -> str:
         base += ([_full(cell.mean if cell.n else None), _full(cell.low), _full(cell.high),
                   cell.n, 0] if cell is not None else ["", "", "", 0, 0])
     return csv_table(summaries, table.columns, first=base)
+
+
+PAIRED_TITLES = {"target": "target", "heldout_avg": "held-out avg"}
+
+
+def paired_markdown(table: PaperTable) -> str:
+    """Each row minus sft, seed by seed: the mean difference, its interval, and the per-seed
+    differences, so a reader sees whether the seeds agree in sign."""
+    head = " | ".join(f"Δ {PAIRED_TITLES[k]}" for k in PAIRED)
+    lines = [f"| method | seeds | {head} | per seed ({PAIRED_TITLES[PAIRED[-1]]}) |",
+             "|---|---|" + "---|" * len(PAIRED) + "---|"]
+    for row in table.paired:
+        cells = [_signed(row.cells[k]) for k in PAIRED]
+        per_seed = ", ".join(f"{s}: {v:+.3f}" for s, v in zip(row.seeds, row.per_seed[PAIRED[-1]]))
+        lines.append(f"| {row.label} | {len(row.seeds)} | " + " | ".join(cells)
+                     + f" | {per_seed} |")
+    return "\n".join(lines) + "\n"
+
+
+def _signed(cell: Interval) -> str:
+    if not cell.has_interval:
+        return f"{cell.mean:+.{DIGITS}f}"
+    return f"{cell.mean:+.{DIGITS}f} [{cell.low:+.{DIGITS}f}, {cell.high:+.{DIGITS}f}]"
+
+
+def paired_csv(table: PaperTable) -> str:
+    """Machine-readable: per row and column, the mean difference from sft, its interval, and
+    the difference at each seed."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    header = ["label", "reference", "n_seeds", "seeds"]
+    for k in PAIRED:
+        header += [f"{k}_diff_mean", f"{k}_diff_ci_low", f"{k}_diff_ci_high", f"{k}_diff_per_seed"]
+    writer.writerow(header)
+    for row in table.paired:
+        line = [row.label, REFERENCE, len(row.seeds), ";".join(map(str, row.seeds))]
+        for k in PAIRED:
+            c = row.cells[k]
+            line += [_full(c.mean), _full(c.low), _full(c.high),
+                     ";".join(_full(v) for v in row.per_seed[k])]
+        writer.writerow(line)
+    return buf.getvalue()
 
 
 def csv_table(summaries: list[RowSummary], metrics: list[Metric] | None = None,
