@@ -430,3 +430,26 @@ def test_paired_rows_use_only_the_shared_seeds():
     assert paired.cells["heldout_avg"].mean == pytest.approx(0.25)
     # no sft row: nothing to pair against
     assert paired_rows([er, nan]) == []
+
+
+def test_a_cell_from_fewer_seeds_than_its_row_is_noted():
+    """seed 0's sft ran before check success was logged: the row has 3 seeds, the cell 2."""
+    from harness.measure.bootstrap import bootstrap_ci
+    from harness.report.aggregate import CHECK_SUCCESS, Metric, RowSummary
+    from harness.report.build import _row_notes
+
+    check = Metric(CHECK_SUCCESS, "check success", True, "", ranked=False)
+    target = Metric("target", "target", True, "")
+
+    def summary(label: str, checks: list[float]) -> RowSummary:
+        runs = [dataclasses.replace(_run(label, s, 0.9, 0.5), stage_check_success=(c,))
+                for s, c in enumerate(checks)]
+        row = Row(label, label, "", runs, [])
+        return RowSummary(row, {"target": bootstrap_ci([0.9] * 3), CHECK_SUCCESS:
+                                bootstrap_ci(checks)}, [], [], np.zeros((1, 1)), [], None, {})
+
+    notes = _row_notes([summary("sft", [float("nan"), 0.9, 0.95]),
+                        summary("er", [0.9, 0.9, 0.95]),
+                        summary("old", [float("nan")] * 3)], 0, [target, check])
+    assert notes[2:-1] == ["- **sft**: its check success averages 2 of its 3 seeds; seed 0 "
+                           "did not log it (run before it existed)."]

@@ -8,6 +8,7 @@ folder always describes one build.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +17,14 @@ from harness.common.atomic import write_text
 from harness.common.errors import RetainError
 from harness.measure.bootstrap import RESAMPLES
 from harness.report import plots
-from harness.report.aggregate import OPTIONAL_NOTES, RowSummary, shown_metrics, summarize
+from harness.report.aggregate import (
+    OPTIONAL_NOTES,
+    Metric,
+    RowSummary,
+    run_value,
+    shown_metrics,
+    summarize,
+)
 from harness.report.groups import ABSTRACT_ONLY, build_rows
 from harness.report.paper import REFERENCE, PaperTable, paper_columns, paper_table
 from harness.report.runs import experiment_id, load_runs, open_client
@@ -132,12 +140,23 @@ def _header(summaries: list[RowSummary], benchmark: str) -> list[str]:
     ]
 
 
-def _row_notes(summaries: list[RowSummary], superseded: int) -> list[str]:
-    """Rows to read with care: missing seeds, superseded runs, an earlier reading of ConSFT."""
+def _row_notes(summaries: list[RowSummary], superseded: int,
+               metrics: list[Metric] | None = None) -> list[str]:
+    """Rows to read with care: missing seeds, cells from fewer seeds than the row has (a metric
+    that runs from before it was added never logged), superseded runs, an earlier reading of
+    ConSFT."""
     notes = [f"- **{s.label}** lacks seed{'s' if len(s.row.missing_seeds) > 1 else ''} "
              f"{', '.join(map(str, s.row.missing_seeds))} that other rows have: its cells average "
              f"its {len(s.row.runs)} seeds only, so compare it with care."
              for s in summaries if s.row.missing_seeds]
+    for m in shown_metrics(summaries) if metrics is None else metrics:
+        for s in summaries:
+            if 0 < s.cells[m.key].n < len(s.row.runs):
+                unlogged = [r.seed for r in s.row.runs if math.isnan(run_value(r, m.key))]
+                notes.append(f"- **{s.label}**: its {m.title} averages {s.cells[m.key].n} of its "
+                             f"{len(s.row.runs)} seeds; seed{'s' * (len(unlogged) > 1)} "
+                             f"{', '.join(map(str, unlogged))} did not log it (run before it "
+                             "existed).")
     if superseded:
         notes.append(f"- {superseded} older run(s) of a (method, seed) that was run again were "
                      "left out; the newest run counts.")
@@ -181,7 +200,7 @@ def paper_table_markdown(paper: PaperTable, summaries: list[RowSummary], benchma
     """The ConSFT paper's table 2 shape (harness/report/paper.py), with its legend."""
     lines = [f"# {benchmark}: the ConSFT paper's table-2 columns", "",
              *_header(summaries, benchmark), paper_markdown(paper, summaries)]
-    lines += _row_notes(summaries, 0)
+    lines += _row_notes(summaries, 0, paper.columns)
     lines += ["## Columns", "",
               f"- {BASE_ROW_NOTE}"]
     if paper.differing_seeds:
