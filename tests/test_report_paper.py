@@ -122,6 +122,8 @@ def log_child(tracker, exp_parent: str, method: str, seed: int, tmp, grouped: bo
                     "consft/tau": 0.003 * done, "consft/weight_mean": 0.001 * done,
                     "consft/frac_at_floor": 1 - 0.05 * done, "consft/loss_q10": 0.01,
                     "consft/loss_q50": 0.1, "consft/loss_q90": 1.0}) for done in range(1, used + 1)]
+        if (method, seed) == ("sft", 0):  # a killed attempt's row past where the rerun stopped
+            steps.insert(0, (global_step(2, 10), {"sparsity/eq8": 0.123}))
         tracker.log_metric_rows(run_id, steps)
     tracker.end_run(run_id)
 
@@ -252,6 +254,10 @@ def test_grouped_stages_are_read_from_the_config(store):
     eq8 = runs[("sft", 1, False)].series["sparsity/eq8"]
     assert eq8.step.tolist() == [5, 10, 15, 20] and eq8.stage.tolist() == [1, 1, 2, 2]
     np.testing.assert_allclose(eq8.value, [0.8, 0.7, 0.6, 0.5])
+    # sft seed 0's stage 2 stopped at 5 steps: a killed attempt's row at its step 10 is dropped
+    eq8 = runs[("sft", 0, False)].series["sparsity/eq8"]
+    assert eq8.step.tolist() == [5, 10, 15] and eq8.stage.tolist() == [1, 1, 2]
+    np.testing.assert_allclose(eq8.value, [0.9, 0.8, 0.7])
 
 
 def test_grouped_stages_in_the_heatmap_and_curves(store, monkeypatch, tmp_path):

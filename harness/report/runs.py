@@ -152,8 +152,8 @@ def _record(client, run) -> RunRecord:
         layers=_layer_updates(client, run_id), needs=tags.get("needs", ""),
         commits=tuple(run_commits(params, tags)), stage_sizes=tuple(sizes),
         stage_steps=per_stage["stage_steps"], stage_check_success=per_stage["stage_check_success"],
-        series={key: _series(client, run_id, key, params) for key in SERIES_KEYS
-                if key in run.data.metrics},
+        series={key: _series(client, run_id, key, params, per_stage["stage_steps"])
+                for key in SERIES_KEYS if key in run.data.metrics},
     )
 
 
@@ -194,15 +194,23 @@ def _per_stage(client, run_id: str, key: str, k: int) -> tuple[float, ...]:
     return tuple(history.get(stage, math.nan) for stage in range(1, k + 1))
 
 
-def _series(client, run_id: str, key: str, params: dict[str, str]) -> StepSeries:
+def _series(client, run_id: str, key: str, params: dict[str, str],
+            stage_steps: tuple[float, ...]) -> StepSeries:
     """A per-step metric of the stream stages. The trainer logs steps on one axis from the
-    foundation's start: foundation_steps + (stage - 1) * steps_per_task + steps done - 1."""
+    foundation's start: foundation_steps + (stage - 1) * steps_per_task + steps done - 1.
+    A stage killed and rerun logs into the same run; where the rerun stopped at an earlier
+    check than the killed attempt reached, the attempt's later rows remain. So a stage's rows
+    past its recorded `stage_steps` are dropped (all are kept where a run never logged it)."""
     history = _history(client, run_id, key)
     start = int(params.get("config.foundation_steps", 0))
     per_stage = max(1, int(params.get("config.steps_per_task", 1)))
     steps = np.array([s - start for s in history if s >= start], dtype=np.int64)
     values = np.array([v for s, v in history.items() if s >= start], dtype=np.float64)
-    return StepSeries(step=steps + 1, stage=steps // per_stage + 1, value=values)
+    stage, done = steps // per_stage + 1, steps % per_stage + 1
+    used = np.array([stage_steps[i - 1] if i <= len(stage_steps) else math.nan for i in stage],
+                    dtype=np.float64)
+    keep = np.isnan(used) | (done <= used)
+    return StepSeries(step=steps[keep] + 1, stage=stage[keep], value=values[keep])
 
 
 def _success_matrix(client, run_id: str, tasks: list[str], k: int) -> np.ndarray:
