@@ -1,7 +1,7 @@
 """Real LIBERO (suite "libero"): its 130 tasks, LIBERO's init-state evaluation protocol, the
 fixed state layout, the asset check, and demo files in LIBERO's layout both ways.
-Building a LIBERO env takes seconds: this file builds six (one per suite, one with cameras, one
-for demos_dir)."""
+Building a LIBERO env takes seconds: this file builds seven (one per suite, one with cameras, one
+with textures, one for demos_dir)."""
 
 from __future__ import annotations
 
@@ -149,10 +149,40 @@ def test_state_layout_is_fixed_per_task(object_env):
     assert isinstance(result.success, bool) and np.isfinite(result.obs["state"]).all()
 
 
+def _textures(env) -> int:
+    return env.env.env.sim.model._model.ntex
+
+
+def test_without_cameras_a_scene_drops_its_textures_and_keeps_its_physics(object_env, monkeypatch):
+    """Textures are most of a scene's memory and nothing reads them without cameras; the
+    episodes are bit for bit those of the textured scene, from an init state and from a fresh
+    placement (which reloads the model)."""
+    from suites.libero import env as libero_env
+
+    monkeypatch.setattr(libero_env, "drop_textures", lambda env: None)
+    textured = SUITE.make_env(OBJECT_TASK)
+    try:
+        assert _textures(textured) > 0 and _textures(object_env) == 0
+        for key in (3, FRESH_PLACEMENT + 5):
+            object_env.reset(key)
+            textured.reset(key)
+            np.testing.assert_array_equal(object_env.sim_state(), textured.sim_state())
+            rng = np.random.default_rng(key)
+            for _ in range(20):
+                action = rng.uniform(-1, 1, 7)
+                stripped, kept = object_env.step(action), textured.step(action)
+                np.testing.assert_array_equal(stripped.obs["state"], kept.obs["state"])
+            np.testing.assert_array_equal(object_env.sim_state(), textured.sim_state())
+            assert _textures(object_env) == 0
+    finally:
+        textured.close()
+
+
 def test_spatial_task_with_cameras_steps_and_renders():
     env = SUITE.make_env(SPATIAL_TASK, cameras=True, image_size=32)  # needs MUJOCO_GL=egl
     try:
         obs = env.reset(0)
+        assert _textures(env) > 0  # cameras keep them
         assert obs["state"].shape == (STATE_DIM,)
         for key in ("agentview_rgb", "eye_in_hand_rgb"):
             assert obs[key].shape == (32, 32, 3) and obs[key].dtype == np.uint8 and obs[key].any()

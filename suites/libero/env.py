@@ -26,6 +26,8 @@ dataset files store them: robosuite's renders unflipped (OpenGL convention, bott
 
 from __future__ import annotations
 
+from xml.etree import ElementTree
+
 import numpy as np
 
 import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
@@ -75,12 +77,40 @@ def make_raw_env(task: LiberoTask, cameras: bool, image_size: int):
     patch_floor_mount()
     from libero.libero.envs.env_wrapper import ControlEnv
 
-    return ControlEnv(bddl_file_name=task.bddl_file, has_renderer=False,
-                      has_offscreen_renderer=cameras, use_camera_obs=cameras,
-                      camera_names=list(CAMERAS.values()), camera_heights=image_size,
-                      camera_widths=image_size, horizon=10**9, ignore_done=True,
-                      initialization_noise=ROBOT_INIT_NOISE,
-                      hard_reset=False)  # start() reloads the model for a fresh scene only
+    env = ControlEnv(bddl_file_name=task.bddl_file, has_renderer=False,
+                     has_offscreen_renderer=cameras, use_camera_obs=cameras,
+                     camera_names=list(CAMERAS.values()), camera_heights=image_size,
+                     camera_widths=image_size, horizon=10**9, ignore_done=True,
+                     initialization_noise=ROBOT_INIT_NOISE,
+                     hard_reset=False)  # start() reloads the model for a fresh scene only
+    if not cameras:
+        drop_textures(env.env)
+    return env
+
+
+def drop_textures(env) -> None:
+    """Rebuild a robosuite env's sim without its textures, and every later reload too.
+
+    Without cameras nothing reads them, and they are most of a LIBERO scene's memory (143 of
+    the 220 MB of a kitchen scene's compiled model): an evaluation holds one scene per task at
+    once, 42 of them in libero-paper. Physics reads no texture, so episodes are unchanged
+    (tests/test_suite_libero.py steps both and compares the states bit for bit)."""
+    env.set_xml_processor(_without_textures)  # robosuite applies it at every reload
+    saved = np.random.get_state()  # LIBERO's reset may draw placements from numpy's global RNG
+    try:
+        env.reset_from_xml_string(env.model.get_xml())
+    finally:
+        np.random.set_state(saved)
+
+
+def _without_textures(xml: str) -> str:
+    root = ElementTree.fromstring(xml)
+    asset = root.find("asset")
+    for texture in asset.findall("texture") if asset is not None else []:
+        asset.remove(texture)
+    for material in root.iter("material"):
+        material.attrib.pop("texture", None)
+    return ElementTree.tostring(root, encoding="unicode")
 
 
 def _quat2axisangle(quat: np.ndarray) -> np.ndarray:
