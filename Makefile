@@ -16,7 +16,7 @@ export PYTHONUNBUFFERED := 1
 OVERRIDES := $(strip $(foreach v,$(MAKEOVERRIDES),$(if $(findstring =,$(v)),$(v))))
 quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps its ';'
 
-.PHONY: bench compare sweep study report test lint ui mlflow-server venv clean-cache bench-train bench-methods \
+.PHONY: bench compare sweep study report test lint ui mlflow-server venv clean-cache bench-train bench-methods bench-envs \
 	bench-eval bench-tracking libero-check test-slow gpu-check
 
 $(STAMP): requirements.lock pyproject.toml
@@ -65,6 +65,12 @@ bench-eval: $(STAMP)
 	$(PY) -m harness.perf.throughput eval $(or $(WORKERS),2) --bench $(or $(BENCH),mw-quick) \
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
 		$(if $(device),--device $(device))
+
+# make bench-envs [BENCH=libero-paper] [TASKS=12] [cameras=true image_size=128]: the memory and
+# build time of a benchmark's simulators, one per task as an evaluation holds them
+bench-envs: $(STAMP)
+	$(PY) -m harness.perf.throughput envs --bench $(or $(BENCH),libero-paper) $(if $(TASKS),--tasks $(TASKS)) \
+		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128))
 
 # every CUDA path end to end on a tiny budget, a PASS or FAIL line and a figure per part (pi0 at
 # batch 64: samples/s and MFU; evaluation with two 128-px cameras; a GPU run killed and resumed):

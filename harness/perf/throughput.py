@@ -1,4 +1,5 @@
-"""Speed and memory figures (`make bench-train`, `make bench-methods`, `make bench-eval`).
+"""Speed and memory figures (`make bench-train`, `make bench-methods`, `make bench-eval`,
+`make bench-envs`).
 
 Targets are printed beside the measurements; nothing here asserts, so a slow machine gives
 slow figures, not a failing test.
@@ -393,6 +394,28 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, camer
           "(target >= 1.6x)")
 
 
+def bench_envs(bench: str, n_tasks: int = 0, cameras: bool = False, image_size: int = 128) -> None:
+    """Resident memory and build time of a benchmark's simulators, one per task as an evaluation
+    holds them at once (its lockstep batches every task's episodes), in this process."""
+    from suites import get_suite
+
+    benchmark = load_benchmark(bench)
+    suite = get_suite(benchmark.suite)
+    tasks = benchmark.all_tasks()
+    tasks = tasks[:n_tasks] if n_tasks > 0 else tasks
+    envs = [suite.make_env(tasks[0], cameras, image_size)]  # the first also pays the imports
+    base, start = _rss_mb(), time.perf_counter()
+    envs += [suite.make_env(task, cameras, image_size) for task in tasks[1:]]
+    seconds, total = time.perf_counter() - start, _rss_mb()
+    for env in envs:
+        env.close()
+    more = max(1, len(tasks) - 1)
+    images = f"two {image_size}x{image_size} cameras" if cameras else "no cameras"
+    print(f"{len(tasks)} of {bench}'s {benchmark.suite} simulators in one process, {images}: "
+          f"{total / 1024:.1f} GB resident; {(total - base) / more:.0f} MB and "
+          f"{seconds / more:.1f} s to build each after the first")
+
+
 def policy_device_name(policy) -> str:
     return str(next(policy.parameters()).device)
 
@@ -411,6 +434,17 @@ def _eval_args(argv: list[str]):
     parser.add_argument("--layout", choices=("auto", "per-worker", "central"), default="auto",
                         help="with workers: per-worker policies or one central policy "
                              "(auto: central for a policy on an accelerator)")
+    return parser.parse_args(argv)
+
+
+def _envs_args(argv: list[str]):
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m harness.perf.throughput envs")
+    parser.add_argument("--bench", default="libero-paper", help="the benchmark whose tasks to build")
+    parser.add_argument("--tasks", type=int, default=0, help="its first N tasks (0: all)")
+    parser.add_argument("--cameras", action="store_true", help="with both cameras' renderers")
+    parser.add_argument("--image-size", type=int, default=128)
     return parser.parse_args(argv)
 
 
@@ -438,12 +472,20 @@ def main(argv: list[str]) -> int:
         central = {"auto": None, "per-worker": False, "central": True}[args.layout]
         bench_eval(args.workers, args.episodes, args.max_steps, args.cameras, args.image_size,
                    args.device, central, args.bench)
+    elif what == "envs":
+        args = _envs_args(argv[1:])
+        try:
+            bench_envs(args.bench, args.tasks, args.cameras, args.image_size)
+        except RetainError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     elif what == "_memory":
         print(json.dumps(_method_memory(argv[1], steps=30)))
     else:
         print("usage: python -m harness.perf.throughput {train [device=cuda compile=true],methods,eval "
               "[workers] [--cameras] [--image-size N] [--episodes N] [--max-steps N] [--device D] "
-              "[--layout L]}", file=sys.stderr)
+              "[--layout L],envs [--bench B] [--tasks N] [--cameras] [--image-size N]}",
+              file=sys.stderr)
         return 2
     return 0
 
