@@ -17,7 +17,7 @@ from typing import Annotated
 import torch
 from annotated_types import Ge, doc
 
-from harness.data.datasets import TrainingData
+from harness.data.datasets import TrainingData, batch_to
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
 
@@ -68,7 +68,8 @@ class AGEM(Method):
                            ) -> list[torch.Tensor]:
         """g_ref: the gradient of the mean loss on a memory batch, without touching `.grad`."""
         n = self.config.memory_batch or self._batch_size
-        batch = self.memory.sample(n, self._generator)
+        device = params[0].device  # the memory is kept on the CPU
+        batch = batch_to(self.memory.sample(n, self._generator), device)
         loss = policy(batch, generator=self._generator).mean()
         grads = torch.autograd.grad(loss, params, allow_unused=True)
         return [torch.zeros_like(p) if g is None else g for p, g in zip(params, grads)]
@@ -82,7 +83,7 @@ class AGEM(Method):
     def after_task(self, ctx: TaskContext) -> None:
         """Keep up to `memory_per_task` samples of every task in this stage's data."""
         g = torch.Generator().manual_seed(4000 + ctx.stage)
-        kept = ctx.data.per_task_subset(self.config.memory_per_task, g)
+        kept = ctx.data.per_task_subset(self.config.memory_per_task, g).to("cpu")
         self.memory = kept if self.memory is None else TrainingData.concat([self.memory, kept])
 
     def state_dict(self):

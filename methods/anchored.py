@@ -13,7 +13,8 @@ from collections.abc import Callable
 import torch
 from torch.func import functional_call, grad, vmap
 
-from methods.base import Method
+from methods.base import Method, TaskContext
+from policies.base import randn_from
 
 
 class _Call(torch.nn.Module):
@@ -58,7 +59,7 @@ def importance_batch(ctx_data, policy: torch.nn.Module, samples: int, seed: int)
     g = torch.Generator().manual_seed(seed)
     idx = torch.randperm(len(ctx_data), generator=g)[:samples]
     batch = {k: v for k, v in ctx_data.batch(idx).items() if k not in ("index", "task_index")}
-    batch["noise"] = torch.randn(batch["actions"].shape, generator=g)
+    batch["noise"] = randn_from(batch["actions"].shape, g, batch["actions"].device)
     batch["time"] = policy.sample_time(len(idx), g)
     return batch
 
@@ -69,8 +70,16 @@ class AnchoredMethod(Method):
         self.anchor: dict[str, torch.Tensor] | None = None
         self.importance: dict[str, torch.Tensor] | None = None  # None: every weight counts 1
 
+    def before_task(self, ctx: TaskContext) -> None:
+        """The anchor and importance where the policy trains (a checkpoint loads them on the CPU)."""
+        device = next(ctx.policy.parameters()).device
+        for name in ("anchor", "importance"):
+            kept = getattr(self, name)
+            if kept is not None:
+                setattr(self, name, {k: v.to(device) for k, v in kept.items()})
+
     def penalty(self, policy: torch.nn.Module) -> torch.Tensor:
-        total = torch.zeros(())
+        total = torch.zeros((), device=next(policy.parameters()).device)
         for n, p in policy.named_parameters():
             if self.importance is not None and n not in self.importance:
                 continue  # frozen when the importance was measured: it carries none

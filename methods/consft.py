@@ -42,6 +42,7 @@ from annotated_types import Ge, Gt, Interval
 
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
+from policies.base import randn_from
 
 LOSS_QUANTILES = (0.1, 0.5, 0.9)
 
@@ -90,7 +91,7 @@ class ConSFT(Method):
         if self.config.variant == "ratio":
             g = torch.Generator().manual_seed(ctx.stage)
             n = len(ctx.data)
-            noise = torch.randn(ctx.data.actions.shape, generator=g)
+            noise = randn_from(ctx.data.actions.shape, g, ctx.data.actions.device)
             time = ctx.policy.sample_time(n, g)
             self._draws = (noise, time)
             self._old_loss = torch.cat([
@@ -118,7 +119,7 @@ class ConSFT(Method):
         c = self.config
         losses = per_sample.detach().float()
         stats = {f"consft/loss_q{round(q * 100)}": v.item()
-                 for q, v in zip(LOSS_QUANTILES, torch.quantile(losses, torch.tensor(LOSS_QUANTILES)))}
+                 for q, v in zip(LOSS_QUANTILES, torch.quantile(losses, torch.tensor(LOSS_QUANTILES, device=losses.device)))}
         if c.variant == "ratio":
             log_ratio = (self._old_loss[batch["index"]] - per_sample) / c.tau_fixed
             # min(r, clip(r, 1-eps, 1+eps)) is min(r, 1+eps) for a positive advantage; clamping

@@ -42,7 +42,7 @@ class ExperienceReplay(Method):
     def after_task(self, ctx: TaskContext) -> None:
         """Keep up to `buffer_per_task` samples of every task in this stage's data."""
         g = torch.Generator().manual_seed(1000 + ctx.stage)
-        kept = ctx.data.per_task_subset(self.config.buffer_per_task, g)
+        kept = ctx.data.per_task_subset(self.config.buffer_per_task, g).to("cpu")
         self.buffer = kept if self.buffer is None else TrainingData.concat([self.buffer, kept])
 
     def state_dict(self):

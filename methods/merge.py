@@ -43,7 +43,7 @@ class WeightMerge(Method):
             return
         for n, p in ctx.policy.named_parameters():
             # lerp is exact at both ends: theta_0 at alpha = 0, theta_task at alpha = 1
-            p.copy_(torch.lerp(self.theta0[n], p, self.config.alpha))
+            p.copy_(torch.lerp(self.theta0[n].to(p.device), p, self.config.alpha))
 
     def state_dict(self):
         return {"theta0": self.theta0}

@@ -20,13 +20,15 @@ class Multitask(Method):
         self._joined: TrainingData | None = None  # seen + the current task, built once per stage
 
     def before_task(self, ctx: TaskContext) -> None:
-        self._joined = ctx.data if self.seen is None else TrainingData.concat([self.seen, ctx.data])
+        self._joined = (ctx.data if self.seen is None  # where the stage's data is (a GPU's once)
+                        else TrainingData.concat([self.seen.to(ctx.data.actions.device), ctx.data]))
 
     def sample_batch(self, ctx: TaskContext, batch_size: int, generator: torch.Generator) -> dict:
         return self._joined.sample(batch_size, generator)
 
     def after_task(self, ctx: TaskContext) -> None:
-        self.seen = ctx.data if self.seen is None else TrainingData.concat([self.seen, ctx.data])
+        data = ctx.data.to("cpu")  # kept on the CPU, as a checkpoint loads it
+        self.seen = data if self.seen is None else TrainingData.concat([self.seen, data])
         self._joined = None
 
     def state_dict(self):

@@ -125,7 +125,7 @@ class FlowMatchingBase(nn.Module):
         """The batch's noise and times, or fresh ones (noise first: the generator's order)."""
         noise = batch.get("noise")
         if noise is None:
-            noise = _randn(actions.shape, generator, actions.device)
+            noise = randn_from(actions.shape, generator, actions.device)
         t = batch.get("time")
         if t is None:
             t = self.sample_time(actions.shape[0], generator)
@@ -178,7 +178,7 @@ class FlowMatchingBase(nn.Module):
         x = noise if noise is None else noise.to(self.device)
         if x is None:
             shape = (batch["state"].shape[0], c.chunk_size, c.action_dim)
-            x = _randn(shape, generator, batch["state"].device)
+            x = randn_from(shape, generator, batch["state"].device)
         context = self.encode_observation(batch)
         return self.integrate(x, lambda x_t, t: self.velocity(x_t, t, context))
 
@@ -192,7 +192,7 @@ class FlowMatchingBase(nn.Module):
         return self.action_norm.unnormalize(x)
 
 
-def _randn(shape, generator: torch.Generator | None, device: torch.device) -> torch.Tensor:
+def randn_from(shape, generator: torch.Generator | None, device: torch.device) -> torch.Tensor:
     """Standard normal draws from `generator` (on its own device, so a CPU generator seeds a
     GPU run reproducibly), placed on `device`."""
     if generator is None:

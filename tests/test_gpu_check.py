@@ -89,9 +89,11 @@ def test_the_kill_ends_the_run_and_what_it_started_at_the_marker():
 
 
 def test_every_package_sent_to_the_device_is_pinned():
-    pins = gpu_check.locked_pins(gpu_check.DEVICE_PACKAGES)
-    assert len(pins) == len(gpu_check.DEVICE_PACKAGES)
+    sent = gpu_check.DEVICE_PACKAGES + gpu_check.CORE_PACKAGES
+    pins = gpu_check.locked_pins(sent)
+    assert len(pins) == len(sent)
     assert "metaworld==3.1.1" in pins and "mujoco==3.3.0" in pins
+    assert any(pin.startswith("pydantic==") for pin in pins)  # every part's config checks
 
 
 @pytest.mark.slow  # imports transformers in a second process: seconds idle, a minute when busy

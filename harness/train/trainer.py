@@ -15,6 +15,7 @@ import torch
 
 from harness.common.device import autocast
 from harness.common.errors import NonFiniteLoss
+from harness.data.datasets import batch_to
 from harness.train.optim import ClippedAdamW, contiguous_parameters
 from methods import Method, TaskContext
 
@@ -104,8 +105,7 @@ def train_stage(
             else:
                 batch = next_batch.result()
             if device.type != "cpu":
-                batch = {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v
-                         for k, v in batch.items()}
+                batch = batch_to(batch, device, non_blocking=True)
             timer.mark("data")
             with autocast(device):
                 per_sample = policy(batch, generator=generator)
