@@ -64,6 +64,24 @@ def test_killed_runs_resume_to_the_same_results(tmp_path, reference):
 
 
 @pytest.mark.slow
+def test_a_foundation_killed_mid_training_resumes_from_its_snapshot(tmp_path, reference):
+    cmd = _cmd(tmp_path, "snapshot_minutes=0.00001")  # a snapshot after every step
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
+    deadline = time.monotonic() + 240
+    while not list((tmp_path / "cache").glob("foundation/*/snapshot.pt")):
+        assert proc.poll() is None and time.monotonic() < deadline, "no snapshot was written"
+        time.sleep(0.001)
+    proc.send_signal(signal.SIGKILL)  # mid-foundation: its weights are not written yet
+    proc.wait()
+    assert not list((tmp_path / "cache").glob("foundation/*/policy.pt"))
+    proc = _run(cmd)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "[retain] foundation seed 0: resuming at step" in proc.stdout + proc.stderr
+    assert _outputs(tmp_path) == reference[1]  # the uninterrupted run's, to the last digit
+    assert not list((tmp_path / "cache").glob("foundation/*/snapshot.pt"))  # removed once done
+
+
+@pytest.mark.slow
 def test_same_seed_same_results_and_other_seed_differs(tmp_path, reference):
     proc = _run(_cmd(tmp_path, "eval_workers=2"))  # also: worker count does not change results
     assert proc.returncode == 0, proc.stderr[-2000:]

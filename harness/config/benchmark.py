@@ -86,6 +86,9 @@ class BenchConfig:
     # cpu, cuda, cuda:N or auto (CUDA when present; plan checks it); CUDA trains in bf16 autocast
     device: Annotated[str, MinLen(1)] = "cpu"
     compile: bool = False  # torch.compile the policy (worth it on a GPU)
+    # the foundation's training saves a snapshot this often (wall time), so a killed base
+    # resumes where it was rather than from step 0; results do not depend on it
+    snapshot_minutes: Annotated[float, Gt(0)] = 10.0
     # -- the ConSFT paper's protocol (issue 36; docs/methods.md) ------------------------------
     # stream stages of several tasks trained together (the paper's target is a whole suite): how
     # many consecutive stream tasks each stage trains, [] for one task a stage. A benchmark file
@@ -159,12 +162,14 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
     "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
-    "policy", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups"})
+    "policy", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups",
+    "snapshot_minutes"})
 
 # settings that cannot change a run's results (where it is written, how rollouts are split);
 # torch_threads stays in: the summation order of a matrix product depends on it
 NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
-                  "eval_envs_per_task", "results_dir", "cache_dir", "executor", "jobs")
+                  "eval_envs_per_task", "results_dir", "cache_dir", "executor", "jobs",
+                  "snapshot_minutes")
 
 # settings added after results were recorded, at the value that changes nothing: there a run
 # key leaves them out (earlier checkpoints still resume) and a report reads a run that never

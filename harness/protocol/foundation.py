@@ -16,7 +16,7 @@ from harness.config.benchmark import BenchConfig
 from harness.data.prepare import BenchmarkData, demo_spec
 from harness.evaluate.rollouts import Evaluator
 from harness.evaluate.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
-from harness.train.trainer import TrainSettings, train_stage
+from harness.train.trainer import Snapshots, TrainSettings, train_stage
 from methods import Method, TaskContext
 from policies import get_policy, make_config, policy_for_config
 from policies.flow_matching.modeling import ARCHITECTURE_VERSION
@@ -101,10 +101,13 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
                           foundation_loss=float("nan"), steps=cfg.foundation_steps)
         settings = TrainSettings(cfg.foundation_steps, cfg.batch_size, cfg.foundation_lr,
                                  cfg.weight_decay, cfg.grad_clip)
-        result = train_stage(ctx, Method(), settings, generator(seed, "foundation"), log)
+        snapshot = directory / "snapshot.pt"
+        result = train_stage(ctx, Method(), settings, generator(seed, "foundation"), log,
+                             snapshots=_snapshots(snapshot, cfg, seed))
         final_loss = result.final_loss
         save_checkpoint(weights, {"policy": policy.state_dict(), "final_loss": final_loss,
                                   "config": cfg.as_dict()})
+        snapshot.unlink(missing_ok=True)
     if stage0_path.exists():
         stage0 = StageRecord(**load_checkpoint(stage0_path))
     else:
@@ -112,3 +115,17 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
         stage0.train_loss = final_loss
         save_checkpoint(stage0_path, stage0.as_dict())
     return Foundation(key, policy.state_dict(), final_loss, stage0)
+
+
+def _snapshots(path: Path, cfg: BenchConfig, seed: int) -> Snapshots:
+    """The foundation's mid-training snapshots, beside its weights (the directory's key is the
+    foundation's, so a snapshot never meets other settings)."""
+    def load() -> dict | None:
+        if not path.exists():
+            return None
+        state = load_checkpoint(path)
+        print(f"[retain] foundation seed {seed}: resuming at step {state['step']} of "
+              f"{cfg.foundation_steps}", flush=True)
+        return state
+
+    return Snapshots(load, lambda state: save_checkpoint(path, state), cfg.snapshot_minutes * 60)

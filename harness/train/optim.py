@@ -57,6 +57,12 @@ class ClippedAdamW:
         self.adamw.step()
         self.flat.grad.zero_()
 
+    def state_dict(self) -> dict:
+        return self.adamw.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.adamw.load_state_dict(state)
+
     @torch.no_grad()
     def frac_eps_dominated(self) -> float:
         """The share of scalars whose update denominator sqrt(v_hat) + eps is set by eps:

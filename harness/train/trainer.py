@@ -40,6 +40,21 @@ class TrainResult:
 StepLogger = Callable[[int, dict[str, float]], None]
 
 
+@dataclass(frozen=True)
+class Snapshots:
+    """Where a long stage keeps its progress, so that a killed process resumes mid-stage rather
+    than from the stage's start (a 52,000-step LIBERO base; a pi0 base longer than a GPU lease).
+
+    A snapshot holds the weights, the optimizer's moments, the generator's state, the step and
+    the recent losses, so the resumed stage is the uninterrupted one, step for step: the step
+    that takes one samples its next batch after it, not ahead of it on the prefetch thread. A
+    method's own state is not in it; only stages of a stateless method (the foundation's) use
+    it, and stream stages resume from their stage's start."""
+    load: Callable[[], dict | None]  # the last snapshot, or None
+    save: Callable[[dict], None]  # written whole or not at all
+    every_seconds: float  # wall time between snapshots
+
+
 class PhaseTimer:
     """Wall time per phase of the training step, for `make bench-train`."""
 
@@ -62,6 +77,7 @@ def train_stage(
     ctx: TaskContext, method: Method, settings: TrainSettings, generator: torch.Generator,
     log: StepLogger | None = None, timer: PhaseTimer | None = None,
     after_step: Callable[[int], bool | None] | None = None,
+    snapshots: Snapshots | None = None,
 ) -> TrainResult:
     """Fine-tune `ctx.policy` on `ctx.data` for `settings.steps` steps with `method`.
 
@@ -79,6 +95,9 @@ def train_stage(
     true return ends the stage there. With `log`, every step also logs the share of parameters
     whose Adam denominator is set by eps rather than by the gradient (`optim/frac_eps_dominated`,
     sqrt(v_hat) < eps): where a small loss scale makes Adam's step shrink (issue 36).
+
+    With `snapshots`, the stage starts from the last snapshot, if any, and takes one whenever
+    `snapshots.every_seconds` have passed since the last (see `Snapshots`).
     """
     policy = ctx.policy
     device = next(policy.parameters()).device
@@ -90,6 +109,13 @@ def train_stage(
     tail = max(1, settings.steps // 10)
     recent: deque[float] = deque(maxlen=tail)  # the last steps' mean losses (it may stop early)
     done = 0
+    resumed = snapshots.load() if snapshots is not None else None
+    if resumed is not None:
+        policy.load_state_dict(resumed["policy"])
+        generator.set_state(resumed["generator"])
+        recent.extend(resumed["recent"])
+        done = resumed["step"]
+    last_snapshot = time.monotonic()
     timer = timer if timer is not None else _NoTimer()
     # Only with a core to spare: beside as many intra-op threads as cores, a third thread makes
     # them wait on each other (a default step took 2x as long with two threads on two cores).
@@ -97,13 +123,15 @@ def train_stage(
     with contiguous_parameters(params) as flat, ThreadPoolExecutor(1) as data_thread:
         optimizer = ClippedAdamW(flat, settings.lr, settings.weight_decay, settings.grad_clip,
                               settings.betas, settings.eps)
+        if resumed is not None:
+            optimizer.load_state_dict(resumed["optimizer"])
         next_batch: Future | None = None
-        for step in range(settings.steps):
+        for step in range(done, settings.steps):
             timer.mark("other")
             if next_batch is None:
                 batch = method.sample_batch(ctx, settings.batch_size, generator)
             else:
-                batch = next_batch.result()
+                batch, next_batch = next_batch.result(), None
             if device.type != "cpu":
                 batch = batch_to(batch, device, non_blocking=True)
             timer.mark("data")
@@ -111,7 +139,9 @@ def train_stage(
                 per_sample = policy(batch, generator=generator)
                 loss, stats = method.loss(per_sample, batch, policy)
             timer.mark("forward")
-            if prefetch and step + 1 < settings.steps:
+            snapshot_due = (snapshots is not None and step + 1 < settings.steps
+                            and time.monotonic() - last_snapshot >= snapshots.every_seconds)
+            if prefetch and step + 1 < settings.steps and not snapshot_due:
                 next_batch = data_thread.submit(method.sample_batch, ctx, settings.batch_size,
                                                 generator)
             if not torch.isfinite(loss):
@@ -133,6 +163,11 @@ def train_stage(
             done = step + 1
             if after_step is not None and after_step(done):
                 break
+            if snapshot_due:
+                snapshots.save({"step": done, "policy": policy.state_dict(),
+                                "optimizer": optimizer.state_dict(),
+                                "generator": generator.get_state(), "recent": list(recent)})
+                last_snapshot = time.monotonic()
     method.after_task(ctx)
     policy.eval()
     final = sum(recent) / len(recent) if recent else math.nan
