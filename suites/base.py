@@ -76,6 +76,9 @@ class Suite(ABC):
     state_dim: int
     action_dim: int
     max_episode_steps: int
+    # one simulator's resident memory in MB, without and with cameras (`make bench-envs`): an
+    # evaluation worker holds one per task at once, so this bounds how many workers fit
+    simulator_mb: tuple[float, float] = (250.0, 500.0)
 
     def __init__(self):
         os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering when cameras are on

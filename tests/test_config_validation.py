@@ -267,7 +267,7 @@ def test_descriptions_read_as_the_user_sees_them():
     assert describe(hints["executor"]) == "one of serial, local, ray"
     assert describe(hints["profile"]) == "one of '', quick, standard, tiny, paper"
     assert describe(hints["stream_tasks"]) == "a non-empty list of text"
-    assert describe(hints["jobs"]) == "an integer >= 0 (0: as many as the cores allow)"
+    assert describe(hints["jobs"]) == "an integer >= 0 (0: as many as the cores and memory allow)"
     assert describe(hints["n_action_steps"], BASE) == "an integer in [1, chunk_size=4]"
     er = declared_types(get_method("er").Config)
     assert describe(er["replay_ratio"]) == "a number in [0, 1)"

@@ -170,6 +170,43 @@ def test_jobs_at_once_follow_the_cores(args, cores, expected):
     assert (slots.parallel, slots.eval_workers) == expected
 
 
+# libero-paper's evaluation worker: 42 LIBERO simulators of 180 MB and the process, 7.9 GB
+LIBERO_WORKER_MB = 500 + 42 * 180
+
+
+@pytest.mark.parametrize("args, cores, memory_gb, expected", [
+    (["executor=local"], 2, 24, (2, 1)),  # the two-core machine: both fit, as before
+    (["executor=local"], 16, 24, (2, 1)),  # 16 cores, but two workers' simulators fit
+    (["executor=local"], 16, 128, (4, 4)),  # 13 fit: 4 jobs, of whose 4 workers 2 have work
+    (["executor=local"], 16, 8, (1, 1)),  # not even one fits: one, rather than none
+    (["executor=local", "eval_workers=2"], 16, 24, (1, 2)),  # a setting given is kept
+    (["executor=local", "jobs=4"], 16, 24, (4, 1)),  # ... and the rest fit around it
+    (["executor=serial"], 16, 24, (1, 16)),  # 2 fit, and only eval_shards=2 have work
+    (["executor=ray"], 16, 8, (4, 1)),  # Ray's machines are not this one
+])
+def test_jobs_at_once_follow_the_memory(args, cores, memory_gb, expected):
+    cfg = resolve(["PROFILE=tiny", *args])
+    slots = plan_slots(cfg, n_jobs=4, cores=cores, worker_mb=LIBERO_WORKER_MB,
+                       memory_mb=memory_gb * 1024)
+    assert (slots.parallel, slots.eval_workers) == expected
+    by_cores = plan_slots(cfg, n_jobs=4, cores=cores)
+    if (slots.parallel, slots.eval_workers) == (by_cores.parallel, by_cores.eval_workers):
+        assert slots.memory_note == ""
+    else:
+        assert "7.9 GB of simulators" in slots.memory_note and f"{memory_gb:.1f} GB" in slots.memory_note
+
+
+def test_an_evaluation_worker_holds_a_simulator_per_task():
+    from harness.run.executors import evaluation_worker_mb
+    from suites.libero import LiberoSuite
+
+    cfg = resolve(["BENCH=libero-paper"])
+    assert len(cfg.all_tasks()) == 42 and cfg.eval_envs_per_task == 1
+    assert evaluation_worker_mb(cfg, LiberoSuite) == 500 + 42 * 180
+    cfg.cameras = True
+    assert evaluation_worker_mb(cfg, LiberoSuite) == 500 + 42 * 325
+
+
 def test_unknown_executor_is_a_one_line_error(capsys):
     from harness.run.cli import main
 

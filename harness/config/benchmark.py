@@ -82,7 +82,7 @@ class BenchConfig:
     learning_curve_every: Annotated[int, Ge(0), doc("0: off")] = 0
     # where a comparison's jobs run: serial, local (processes) or ray
     executor: Literal["serial", "local", "ray"] = "local"
-    jobs: Annotated[int, Ge(0), doc("0: as many as the cores allow")] = 0  # jobs at once
+    jobs: Annotated[int, Ge(0), doc("0: as many as the cores and memory allow")] = 0  # jobs at once
     # cpu, cuda, cuda:N or auto (CUDA when present; plan checks it); CUDA trains in bf16 autocast
     device: Annotated[str, MinLen(1)] = "cpu"
     compile: bool = False  # torch.compile the policy (worth it on a GPU)

@@ -6,7 +6,7 @@ constraints of annotated_types (the ones pydantic reads), one line per field:
     steps_per_task: Annotated[int, Ge(1)] = 1500
     replay_ratio: Annotated[float, Interval(ge=0, lt=1)] = 0.5
     reference: Literal["previous", "foundation"] = "previous"
-    jobs: Annotated[int, Ge(0), doc("0: as many as the cores allow")] = 0
+    jobs: Annotated[int, Ge(0), doc("0: as many as the cores and memory allow")] = 0
     n_action_steps: Annotated[int, Ge(1), AtMost("chunk_size")] = 4
 
 A plain `int`, `float` or `str` accepts any value of its type, except that no float setting is

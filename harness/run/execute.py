@@ -21,7 +21,12 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
     then the jobs on the executor. `harness bench` runs all of a plan's; a study (harness.run.study)
     only the ones not finished yet, of several plans on one benchmark merged into one."""
     from harness.data.prepare import prepare_data
-    from harness.run.executors import make_executor, plan_slots
+    from harness.run.executors import (
+        available_memory_mb,
+        evaluation_worker_mb,
+        make_executor,
+        plan_slots,
+    )
     from harness.run.jobs import (
         FoundationJob,
         Tracking,
@@ -46,7 +51,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
                                            tags={"benchmark": cfg.name})
     tracker.log_params(parent, provenance_params(cfg, provenance))
     tracking = Tracking(tracker.uri, parent, provenance)
-    slots = plan_slots(cfg, len(keyed))
+    slots = plan_slots(cfg, len(keyed), worker_mb=evaluation_worker_mb(cfg, suite),
+                       memory_mb=available_memory_mb())
     usage = CpuUsage.now()
     start = usage.wall
     status, children = "FAILED", []
@@ -56,6 +62,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
               f"{list(dict.fromkeys(v.label for _, v in runs))}, "
               f"seeds {seeds}; {len(keyed)} jobs, executor {cfg.executor} "
               f"({_slots_text(cfg, slots)})", flush=True)
+        if slots.memory_note:
+            print(f"[retain] {slots.memory_note}", flush=True)
         make_missing_demos(cfg, suite)
         data = prepare_data(cfg, suite)
         print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)

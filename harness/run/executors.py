@@ -25,10 +25,30 @@ from harness.config.benchmark import BenchConfig
 from harness.run.jobs import with_absolute_paths
 
 RAY_RETRIES = 3  # attempts after a lost worker (a Python exception is not retried)
+PROCESS_MB = 500.0  # an evaluation worker before its simulators: Python, torch, the suite's imports
+MEMORY_SHARE = 0.8  # of the memory available at the start, what the evaluation workers may hold
 
 
 def available_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def available_memory_mb() -> float | None:
+    """The kernel's MemAvailable, in MB; None where it cannot be read (not Linux)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def evaluation_worker_mb(cfg: BenchConfig, suite) -> float:
+    """One evaluation worker's memory at its peak: a final evaluation builds a simulator for
+    every task (`eval_envs_per_task` each) and keeps them (libero-paper: 42 x 180 MB)."""
+    per_simulator = suite.simulator_mb[1 if cfg.cameras else 0]
+    return PROCESS_MB + len(cfg.all_tasks()) * cfg.eval_envs_per_task * per_simulator
 
 
 @dataclass(frozen=True)
@@ -37,14 +57,41 @@ class Slots:
 
     parallel: int
     eval_workers: int
+    memory_note: str = ""  # why memory set fewer than the cores would, if it did
 
 
-def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None) -> Slots:
+def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None, worker_mb: float = 0.0,
+               memory_mb: float | None = None) -> Slots:
     """`jobs` at once (0: as many as the cores allow, each job keeping max(torch_threads,
     its evaluation workers) cores busy), never more than there are jobs; a job's evaluation
     workers are `eval_workers`, or (when 0) its share of the cores (one on Ray, whose
-    machines the cores of this one say nothing about)."""
+    machines the cores of this one say nothing about).
+
+    Given `memory_mb` (what is available) and `worker_mb` (`evaluation_worker_mb`), the settings
+    left at 0 also keep the evaluation workers that hold simulators at once (a job's first
+    `eval_shards`; the others get no work) within MEMORY_SHARE of it: on many cores a LIBERO
+    benchmark would otherwise build more simulators than the memory holds. A setting given is
+    kept as given."""
     cores = cores or available_cores()
+    by_cores = _slots_by_cores(cfg, n_jobs, cores)
+    if cfg.executor == "ray" or memory_mb is None or worker_mb <= 0:
+        return by_cores
+    fit = max(1, int(MEMORY_SHARE * memory_mb // worker_mb))  # workers holding simulators
+    parallel, workers = by_cores.parallel, by_cores.eval_workers
+    if cfg.executor == "local" and not cfg.jobs:
+        parallel = max(1, min(parallel, fit // min(cfg.eval_workers or 1, cfg.eval_shards)))
+        workers = cfg.eval_workers or max(1, cores // parallel)
+    if not cfg.eval_workers and parallel * min(workers, cfg.eval_shards) > fit:
+        workers = max(1, fit // parallel)
+    if (parallel, workers) == (by_cores.parallel, by_cores.eval_workers):
+        return by_cores
+    return Slots(parallel, workers, (
+        f"memory: {parallel} at once with {workers} evaluation worker(s) each, not "
+        f"{by_cores.parallel} with {by_cores.eval_workers}: a worker holds about "
+        f"{worker_mb / 1024:.1f} GB of simulators and {memory_mb / 1024:.1f} GB is available"))
+
+
+def _slots_by_cores(cfg: BenchConfig, n_jobs: int, cores: int) -> Slots:
     if cfg.executor == "serial":
         return Slots(1, cfg.eval_workers or cores)
     if cfg.executor == "ray":  # Ray places the tasks; each asks for what it uses

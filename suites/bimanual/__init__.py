@@ -136,6 +136,7 @@ class BimanualSuite(TaskTableSuite):
     state_dim = STATE_DIM
     action_dim = ACTION_DIM
     max_episode_steps = 400  # 20 s at 20 Hz; the slowest expert needs about half
+    simulator_mb = (230.0, 460.0)  # make bench-envs BENCH=bimanual-standard: 229 MB, 461
 
     def tasks(self) -> dict:
         return TASKS

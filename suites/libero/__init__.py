@@ -21,6 +21,7 @@ class LiberoSuite(Suite):
     action_dim = ACTION_DIM
     max_episode_steps = 520  # the longest per-suite limit (libero_10); max_steps(task) is the rule
     spatial_probe_version = "offset3-6cm-1"
+    simulator_mb = (180.0, 325.0)  # make bench-envs BENCH=libero-paper: 179 MB, 322 with cameras
 
     def __init__(self):
         super().__init__()

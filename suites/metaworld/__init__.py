@@ -194,6 +194,7 @@ class MetaWorldSuite(Suite):
     state_dim = _STATE_DIM
     action_dim = _ACTION_DIM
     max_episode_steps = 500  # Meta-World's own limit; benchmarks usually set less
+    simulator_mb = (25.0, 100.0)  # make bench-envs BENCH=mw-paper: 23 MB, 97 with cameras
     spatial_probe_version = f"widen{WIDEN:g}x-1"
 
     def task_names(self) -> list[str]:
