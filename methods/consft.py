@@ -118,8 +118,9 @@ class ConSFT(Method):
     def loss(self, per_sample, batch, policy):
         c = self.config
         losses = per_sample.detach().float()
-        stats = {f"consft/loss_q{round(q * 100)}": v.item()
-                 for q, v in zip(LOSS_QUANTILES, torch.quantile(losses, torch.tensor(LOSS_QUANTILES, device=losses.device)))}
+        # on the CPU: one copy of the batch's losses rather than a tensor sent up and three reads
+        quantiles = torch.quantile(losses.cpu(), torch.tensor(LOSS_QUANTILES)).tolist()
+        stats = {f"consft/loss_q{round(q * 100)}": v for q, v in zip(LOSS_QUANTILES, quantiles)}
         if c.variant == "ratio":
             log_ratio = (self._old_loss[batch["index"]] - per_sample) / c.tau_fixed
             # min(r, clip(r, 1-eps, 1+eps)) is min(r, 1+eps) for a positive advantage; clamping

@@ -1,5 +1,6 @@
 """A foundation killed mid-training resumes from its snapshot to the uninterrupted weights."""
 
+import io
 import itertools
 import time
 import types
@@ -43,7 +44,6 @@ class Store:
         return None if self.saved is None else torch.load(self.saved, weights_only=False)
 
     def save(self, state):
-        import io
         buffer = io.BytesIO()
         torch.save(state, buffer)
         buffer.seek(0)

