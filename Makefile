@@ -2,7 +2,9 @@
 # Any KEY=VALUE on the command line is passed through as a config override, e.g.
 #   make bench METHOD=consft PROFILE=quick SEED=1 steps_per_task=2000
 
-PYTHON ?= python3
+# Python 3.12 (lerobot 0.6 needs >= 3.12): `python3.12` where it runs, else a pyenv install of it
+PYTHON ?= $(firstword $(foreach p,python3.12 $(wildcard $(HOME)/.pyenv/versions/3.12*/bin/python3.12),\
+	$(if $(shell $(p) -c 'import sys; assert sys.version_info[:2] == (3, 12)' 2>/dev/null && echo ok),$(p))))
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
@@ -19,10 +21,20 @@ quote = $(foreach v,$(1),'$(v)')  # one shell word each: GRID="a=1,2;b=3" keeps 
 .PHONY: bench compare sweep study report test lint ui mlflow-server venv clean-cache bench-train bench-methods bench-envs \
 	bench-eval bench-tracking libero-check test-slow gpu-check
 
-$(STAMP): requirements.lock pyproject.toml
-	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.lock
-	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+PIP := $(PY) -m pip install --quiet --disable-pip-version-check
+
+# A venv of another Python (an older checkout's 3.11) is rebuilt. The second pip step is
+# robosuite's mink pin (requirements-nodeps.lock says why). draccus, a lerobot dependency, ships
+# its own test suite as a top-level package `tests`, which would shadow this project's tests/.
+$(STAMP): requirements.lock requirements-nodeps.lock pyproject.toml
+	@$(PY) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' 2>/dev/null || { \
+		test -n "$(PYTHON)" || { echo "error: Python 3.12 not found (python3.12 on PATH, or PYTHON=...)"; exit 1; }; \
+		rm -rf $(VENV) && $(PYTHON) -m venv $(VENV); }
+	$(PIP) -r requirements.lock
+	$(PIP) --no-deps -r requirements-nodeps.lock
+	$(PIP) --no-deps --no-build-isolation -e .
+	site=$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])') && test -n "$$site" \
+		&& rm -rf "$$site/tests"
 	$(PY) -m suites.libero.install
 	@touch $(STAMP)
 

@@ -23,10 +23,11 @@ from policies.flow_matching.modeling import ARCHITECTURE_VERSION
 from suites import Suite
 from suites.base import CAMERA_KEYS
 
-FOUNDATION_VERSION = 6  # bump when the training code changes what a cached checkpoint holds
+FOUNDATION_VERSION = 7  # bump when the training code changes what a cached checkpoint holds
 # (5: instruction embeddings encoded one text at a time, policies/text_encoder.py; 6: the update
 # is clip_grad_norm_ then torch.optim.AdamW(fused=True), which rounds the clipped gradient
-# differently from the fused kernel's divisor: mw-quick's foundation moved by up to 8.3e-7)
+# differently from the fused kernel's divisor: mw-quick's foundation moved by up to 8.3e-7;
+# 7: Python 3.12, torch 2.11, NumPy 2 and lerobot 0.6, whose CPU kernels round differently)
 
 
 @dataclass

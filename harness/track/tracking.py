@@ -30,7 +30,7 @@ from typing import Any
 from harness.common.errors import RetainError
 
 PACKAGES = ("torch", "numpy", "mujoco", "metaworld", "robosuite", "mlflow", "h5py",
-            "sentence-transformers")
+            "sentence-transformers", "lerobot", "transformers")
 _MAX_BATCH = 1000  # MLflow's limit on metrics per log_batch call
 KEY_TAG = "retain.key"  # a job's (or an invocation's) identity: a rerun continues its run
 COMMITS_TAG = "retain.git_commits"  # every commit that ran part of a run, in order
