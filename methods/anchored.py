@@ -14,7 +14,7 @@ import torch
 from torch.func import functional_call, grad, vmap
 
 from methods.base import Method, TaskContext
-from policies.base import randn_from
+from policies.base import noise_shape, randn_from
 
 
 class _Call(torch.nn.Module):
@@ -36,7 +36,11 @@ def per_sample_gradient_mean(
     `value(policy, one_sample_batch)` is a scalar; per-sample gradients come from torch.func's
     vmap, so EWC's squared gradients and MAS's absolute ones are of each sample, not of the
     batch mean. `batch` must fix "noise" and "time" so each value depends on the weights only.
+    A policy whose forward leaves tensors (`supports_vmap = False`: LeRobot's processors
+    tokenize text) gets one backward pass a sample instead, with the same result.
     """
+    if not getattr(policy, "supports_vmap", True):
+        return _looped_gradient_mean(policy, batch, value, transform)
     call = _Call(policy, value)
     params = {n: p.detach() for n, p in call.named_parameters() if p.requires_grad}
     buffers = dict(call.named_buffers())
@@ -54,12 +58,28 @@ def per_sample_gradient_mean(
     return {k.removeprefix("policy."): v / n for k, v in total.items()}
 
 
+def _looped_gradient_mean(policy, batch: dict, value: Callable, transform: Callable
+                          ) -> dict[str, torch.Tensor]:
+    """per_sample_gradient_mean one sample at a time (a weight the sample does not reach gets a
+    zero gradient, as vmap gives it)."""
+    named = [(n, p) for n, p in policy.named_parameters() if p.requires_grad]
+    total = {n: torch.zeros_like(p) for n, p in named}
+    n = next(iter(batch.values())).shape[0]
+    for i in range(n):
+        one = {k: v[i:i + 1] for k, v in batch.items()}
+        grads = torch.autograd.grad(value(policy, one), [p for _, p in named], allow_unused=True)
+        for (name, _), g in zip(named, grads):
+            if g is not None:
+                total[name] += transform(g.detach())
+    return {k: v / n for k, v in total.items()}
+
+
 def importance_batch(ctx_data, policy: torch.nn.Module, samples: int, seed: int) -> dict:
     """Up to `samples` of a stage's samples with fixed (noise, time) draws, for an importance."""
     g = torch.Generator().manual_seed(seed)
     idx = torch.randperm(len(ctx_data), generator=g)[:samples]
     batch = {k: v for k, v in ctx_data.batch(idx).items() if k not in ("index", "task_index")}
-    batch["noise"] = randn_from(batch["actions"].shape, g, batch["actions"].device)
+    batch["noise"] = randn_from(noise_shape(policy, len(idx)), g, batch["actions"].device)
     batch["time"] = policy.sample_time(len(idx), g)
     return batch
 

@@ -42,7 +42,7 @@ from annotated_types import Ge, Gt, Interval
 
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
-from policies.base import randn_from
+from policies.base import noise_shape, randn_from
 
 LOSS_QUANTILES = (0.1, 0.5, 0.9)
 
@@ -91,7 +91,7 @@ class ConSFT(Method):
         if self.config.variant == "ratio":
             g = torch.Generator().manual_seed(ctx.stage)
             n = len(ctx.data)
-            noise = randn_from(ctx.data.actions.shape, g, ctx.data.actions.device)
+            noise = randn_from(noise_shape(ctx.policy, n), g, ctx.data.actions.device)
             time = ctx.policy.sample_time(n, g)
             self._draws = (noise, time)
             self._old_loss = torch.cat([

@@ -25,7 +25,7 @@ from annotated_types import Ge
 
 from methods import register_method
 from methods.base import Method, MethodConfig, TaskContext
-from policies.base import randn_from
+from policies.base import noise_shape, randn_from
 
 
 @dataclass
@@ -78,7 +78,8 @@ class Distill(Method):
         flow-matching losses are those plain SFT would compute."""
         batch = super().sample_batch(ctx, batch_size, generator)
         actions = batch["actions"]
-        batch["noise"] = randn_from(actions.shape, generator, actions.device)
+        batch["noise"] = randn_from(noise_shape(ctx.policy, len(actions)), generator,
+                                    actions.device)
         batch["time"] = ctx.policy.sample_time(len(actions), generator)
         return batch
 

@@ -30,8 +30,9 @@ class LoRAConfig(MethodConfig):
     alpha: Annotated[float, Gt(0)] = 8.0
     dropout: Annotated[float, Interval(ge=0, lt=1)] = 0.0  # on the adapter's input (peft's default)
     # Python regex, full-matched against module names; the Linear layers among the matches get
-    # adapters. The default: the action expert of FlowMatchingPolicy. ".*": every Linear layer.
-    target: str = r"(action_in|blocks\..*|action_out\..*)"
+    # adapters. "": the policy's own `lora_target` (FlowMatchingPolicy's action expert; a LeRobot
+    # policy's LeRobot PEFT defaults). ".*": every Linear layer.
+    target: str = ""
 
 
 @register_method
@@ -43,24 +44,30 @@ class LoRA(Method):
         super().__init__(config)
         c = self.config
         try:
-            self._pattern = re.compile(c.target)
+            re.compile(c.target)
         except re.error as exc:
             raise ValueError(f"target={c.target!r} is not a regular expression ({exc})") from None
         self._tuner = None  # peft's LoraModel while a task trains
+        self._trainable: dict[str, bool] = {}  # the policy's own flags, restored after a task
 
     def target_modules(self, policy: torch.nn.Module) -> list[str]:
         """Names of the Linear layers that `target` selects; an error lists the candidates."""
+        target = self.config.target or getattr(policy, "lora_target", "")
         linear = [n for n, m in policy.named_modules() if isinstance(m, torch.nn.Linear)]
-        names = [n for n in linear if self._pattern.fullmatch(n)]
+        if not target:
+            raise ValueError(f"lora needs target=REGEX for {type(policy).__name__}, which names "
+                             f"no lora_target; its Linear layers: {_preview(linear)}")
+        names = [n for n in linear if re.fullmatch(target, n)]
         if not names:
-            raise ValueError(f"lora target={self.config.target!r} matches no Linear layer; "
-                             f"the policy's: {', '.join(linear)}")
+            raise ValueError(f"lora target={target!r} matches no Linear layer; the policy's: "
+                             f"{_preview(linear)}")
         return names
 
     def before_task(self, ctx: TaskContext) -> None:
         """Fresh adapters on the targeted layers; every other parameter frozen (peft's marking),
         so the trainer optimizes the adapters alone."""
         names = self.target_modules(ctx.policy)
+        self._trainable = {n: p.requires_grad for n, p in ctx.policy.named_parameters()}
         exact = "|".join(re.escape(n) for n in names)
         # imported here: peft brings transformers (over 100 MB resident), which a run of any
         # other method, importing every registered method, should not pay for
@@ -85,5 +92,10 @@ class LoRA(Method):
             return
         self._tuner.merge_and_unload()
         self._tuner = None
-        for p in ctx.policy.parameters():
-            p.requires_grad_(True)
+        for n, p in ctx.policy.named_parameters():  # as found (a checkpoint may freeze parts)
+            p.requires_grad_(self._trainable.get(n, True))
+
+
+def _preview(names: list[str], most: int = 12) -> str:
+    shown = ", ".join(names[:most])
+    return shown + (f", ... ({len(names)} in all)" if len(names) > most else "")

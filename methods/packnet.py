@@ -41,10 +41,13 @@ class PackNetConfig(MethodConfig):
     post_prune_grad_clip: Annotated[float, Ge(0), doc("0: no clipping")] = 1.0
 
 
-def prunable_weights(policy: nn.Module) -> dict[str, nn.Parameter]:
-    """The weights PackNet packs: those of every Linear and Conv layer, by parameter name."""
-    return {f"{name}.weight" if name else "weight": m.weight
-            for name, m in policy.named_modules() if isinstance(m, PRUNABLE)}
+def prunable_weights(policy: nn.Module, frozen: frozenset[str] = frozenset()
+                     ) -> dict[str, nn.Parameter]:
+    """The weights PackNet packs: those of every Linear and Conv layer, by parameter name, but
+    the ones the policy keeps frozen (a checkpoint's vision tower, say)."""
+    weights = {f"{name}.weight" if name else "weight": m.weight
+               for name, m in policy.named_modules() if isinstance(m, PRUNABLE)}
+    return {n: p for n, p in weights.items() if n not in frozen}
 
 
 @register_method
@@ -60,9 +63,12 @@ class PackNet(Method):
         self._weights: dict[str, nn.Parameter] = {}  # this stage: the packed weights, by name
         self._trainable: dict[str, torch.Tensor] = {}  # this stage: which weights may move
         self._held: dict[str, torch.Tensor] = {}  # this stage: the values of those that may not
+        self._frozen: frozenset[str] | None = None  # parameters the policy froze itself
 
     def _ensure_owner(self, policy: nn.Module) -> dict[str, nn.Parameter]:
-        weights = prunable_weights(policy)
+        if self._frozen is None:  # as the policy was found, before any stage set its flags
+            self._frozen = frozenset(n for n, p in policy.named_parameters() if not p.requires_grad)
+        weights = prunable_weights(policy, self._frozen)
         if self.owner is None:
             self.owner = {n: torch.full(p.shape, FREE, dtype=torch.int16) for n, p in weights.items()}
         self.owner = {n: self.owner[n].to(p.device) for n, p in weights.items()}  # as loaded: CPU
@@ -84,7 +90,8 @@ class PackNet(Method):
     def after_backward(self, policy: nn.Module) -> None:
         """Zero the gradient of kept weights, so that clipping sees only what may move."""
         for n, p in self._weights.items():
-            p.grad.mul_(self._trainable[n])
+            if p.grad is not None:  # None: no loss reaches it (a VLA's unused lm_head)
+                p.grad.mul_(self._trainable[n])
 
     @torch.no_grad()
     def after_step(self, policy: nn.Module) -> None:
@@ -100,8 +107,8 @@ class PackNet(Method):
         steps = round(self.config.post_prune_fraction * ctx.steps)
         if steps > 0:
             self._retrain(ctx, weights, steps)
-        for p in ctx.policy.parameters():  # the policy as found: every parameter trainable
-            p.requires_grad_(True)
+        for n, p in ctx.policy.named_parameters():  # the policy as found
+            p.requires_grad_(n not in self._frozen)
         self._weights, self._trainable, self._held = {}, {}, {}
 
     @torch.no_grad()
@@ -128,9 +135,10 @@ class PackNet(Method):
         policy.train()
         for _ in range(steps):
             per_sample = policy(ctx.data.sample(c.post_prune_batch, g), generator=g)
-            grads = torch.autograd.grad(per_sample.mean(), params)
+            # allow_unused: a weight no loss reaches (a VLA's unused lm_head) gets no gradient
+            grads = torch.autograd.grad(per_sample.mean(), params, allow_unused=True)
             for n, p, grad in zip(names, params, grads):
-                p.grad = grad * self._trainable[n]
+                p.grad = None if grad is None else grad * self._trainable[n]
             if c.post_prune_grad_clip > 0:
                 nn.utils.clip_grad_norm_(params, c.post_prune_grad_clip)
             optimizer.step()

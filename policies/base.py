@@ -21,6 +21,13 @@ THE POLICY CONTRACT (what the harness and every method rely on; `docs/adding-a-p
 - `predicted_velocity(batch)` -> [B, H, A]: the network's velocity in the normalized action
   space at x_t = time * noise + (1 - time) * actions, with the caller's batch["noise"] and
   batch["time"] (what distillation and MAS compare).
+- Optionally `noise_dim`: a policy that pads its actions (LeRobot's, to max_action_dim) draws
+  its noise as [B, H, noise_dim]; callers that fix "noise" use `noise_shape(policy, B)`.
+- Optionally `needs_cameras = True`: the plan turns cameras on for a policy that reads images.
+- Optionally its Config declares any of `path` (`policy_path`), `instructions` (the benchmark's
+  instruction texts, which a batch's "instruction_id" [B] indexes), `features` (Retain's
+  observation keys to the policy's own names) and `rotate_images`; the harness fills those it
+  declares (harness/protocol/foundation.py).
 
 - Optionally `ARCHITECTURE_VERSION` (a class attribute, part of the foundation cache key): bump
   it when the network changes, so cached foundations of the old network are not reused.
@@ -110,15 +117,10 @@ class FlowMatchingBase(nn.Module):
         return self.action_norm.mean.device
 
     def sample_time(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """t ~ Beta(alpha, beta) scaled to [time_min, 1]; Beta(a, 1) by inverse CDF u^(1/a)."""
+        """t ~ Beta(alpha, beta) scaled to [time_min, 1]."""
         c = self.config
-        if c.time_beta_beta == 1.0:
-            device = generator.device if generator is not None else self.device
-            u = torch.rand(n, generator=generator, device=device).to(self.device)
-            t = u.pow(1.0 / c.time_beta_alpha)
-        else:
-            t = torch.distributions.Beta(c.time_beta_alpha, c.time_beta_beta).sample((n,))
-        return t * (1.0 - c.time_min) + c.time_min
+        return beta_time(n, c.time_beta_alpha, c.time_beta_beta, 1.0 - c.time_min, c.time_min,
+                         generator, self.device)
 
     def _draws(self, batch: dict[str, torch.Tensor], actions: torch.Tensor,
                generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -190,6 +192,25 @@ class FlowMatchingBase(nn.Module):
             t = torch.full((b,), 1.0 - i * dt, device=x.device)
             x = x - dt * velocity(x, t)
         return self.action_norm.unnormalize(x)
+
+
+def beta_time(n: int, alpha: float, beta: float, scale: float, offset: float,
+              generator: torch.Generator | None, device: torch.device) -> torch.Tensor:
+    """n flow-matching times t = Beta(alpha, beta) * scale + offset (pi0's schedule); Beta(a, 1)
+    by inverse CDF u^(1/a), from `generator`."""
+    if beta == 1.0:
+        gen_device = generator.device if generator is not None else device
+        t = torch.rand(n, generator=generator, device=gen_device).to(device).pow(1.0 / alpha)
+    else:
+        t = torch.distributions.Beta(alpha, beta).sample((n,)).to(device)
+    return t * scale + offset
+
+
+def noise_shape(policy, n: int) -> tuple[int, int, int]:
+    """The shape of n samples' flow-matching noise, [n, H, A], or [n, H, policy.noise_dim] for a
+    policy that pads its actions (LeRobot's VLAs draw noise over max_action_dim)."""
+    c = policy.config
+    return (n, c.chunk_size, getattr(policy, "noise_dim", c.action_dim))
 
 
 def randn_from(shape, generator: torch.Generator | None, device: torch.device) -> torch.Tensor:

@@ -9,12 +9,17 @@ import sys
 from torch import nn
 
 from policies.flow_matching.modeling import FlowMatchingPolicy
+from policies.lerobot.modeling import LeRobotPi0Policy, LeRobotPi05Policy, LeRobotSmolVLAPolicy
 from policies.pi0.modeling import Pi0Policy
 from policies.user_class import load_class
 
 # The built-in policies by name: a table, so the registry imports the policies and no policy
 # imports the registry. A user's policy needs no entry: `policy=file.py:Class` names it.
-_REGISTRY: dict[str, type[nn.Module]] = {"mlp": FlowMatchingPolicy, "pi0": Pi0Policy}
+_REGISTRY: dict[str, type[nn.Module]] = {
+    "mlp": FlowMatchingPolicy, "pi0": Pi0Policy,
+    # LeRobot's own classes (policies/lerobot): a random init at policy_size, or policy_path
+    "lerobot_pi0": LeRobotPi0Policy, "lerobot_pi05": LeRobotPi05Policy,
+    "lerobot_smolvla": LeRobotSmolVLAPolicy}
 
 
 def policy_names() -> list[str]:

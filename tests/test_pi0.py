@@ -174,7 +174,7 @@ def test_the_tiny_pi0_trains_end_to_end(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["policy=pi1"], "unknown policy 'pi1'; valid: mlp, pi0"),
+    (["policy=pi1"], "unknown policy 'pi1'; valid: lerobot_pi0, lerobot_pi05, lerobot_smolvla, mlp, pi0"),
     (["policy=pi0", "policy_size=huge"], "unknown policy size 'huge' for Pi0Config; valid: tiny, default, large"),
     (["policy_size=huge"], "valid: tiny, default, large, paper"),
     (["policy=json:NoSuchClass"], "has no class 'NoSuchClass'"),

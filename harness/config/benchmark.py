@@ -53,6 +53,10 @@ class BenchConfig:
     # a registered policy (mlp, pi0) or module.path:Class / file.py:Class (plan checks it)
     policy: Annotated[str, MinLen(1)] = "mlp"
     policy_size: Annotated[str, MinLen(1)] = "default"
+    # a LeRobot policy's checkpoint: a folder, or a hub id where the hub is reachable. It is the
+    # foundation (evaluated at stage 0, never retrained); its config sets the chunk, the
+    # cameras and their size (docs/lerobot.md). "": a random init at policy_size
+    policy_path: str = ""
     chunk_size: Annotated[int, Ge(1)] = 4
     n_action_steps: Annotated[int, Ge(1), AtMost("chunk_size")] = 4
     cameras: bool = False
@@ -162,7 +166,7 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
     "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
-    "policy", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups",
+    "policy", "policy_path", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups",
     "snapshot_minutes"})
 
 # settings that cannot change a run's results (where it is written, how rollouts are split);
@@ -178,7 +182,7 @@ QUIET_DEFAULTS: dict[str, Any] = {
     "spatial_episodes": 0, "eval_shards": 2, "foundation_eval_every": 1, "stage_sizes": [],
     "until_success": 0.0, "check_every": 250, "check_episodes": 10, "adam_beta1": 0.9,
     "adam_beta2": 0.999, "adam_eps": 1e-8, "heldout_groups": {}, "lerobot_keys": "",
-    "lerobot_tasks": "", "lerobot_rotate_images": False}
+    "lerobot_tasks": "", "lerobot_rotate_images": False, "policy_path": ""}
 
 
 def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:

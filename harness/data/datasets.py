@@ -25,6 +25,9 @@ class TrainingData:
     instruction_table: torch.Tensor  # [T, 384] one row per task
     task_names: list[str]
     instruction_tokens: torch.Tensor | None = None  # [T, L] MiniLM token ids per task (0 = pad)
+    # [T] each task's index into the benchmark's instruction texts (cfg.all_tasks() order), for
+    # policies that tokenize the text themselves (LeRobot's)
+    instruction_ids: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -38,6 +41,8 @@ class TrainingData:
         out["index"] = idx
         if self.instruction_tokens is not None:
             out["instruction_tokens"] = self.instruction_tokens[out["task_index"]]
+        if self.instruction_ids is not None:
+            out["instruction_id"] = self.instruction_ids[out["task_index"]]
         return out
 
     def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -46,7 +51,7 @@ class TrainingData:
     def subset(self, idx: torch.Tensor) -> TrainingData:
         return TrainingData({k: v[idx] for k, v in self.obs.items()}, self.actions[idx],
                             self.action_mask[idx], self.task_index[idx], self.instruction_table,
-                            self.task_names, self.instruction_tokens)
+                            self.task_names, self.instruction_tokens, self.instruction_ids)
 
     def to(self, device: torch.device | str) -> TrainingData:
         """The same samples with every tensor on `device` (itself when already there)."""
@@ -56,7 +61,9 @@ class TrainingData:
                             self.actions.to(device), self.action_mask.to(device),
                             self.task_index.to(device), self.instruction_table.to(device),
                             self.task_names, None if self.instruction_tokens is None
-                            else self.instruction_tokens.to(device))
+                            else self.instruction_tokens.to(device),
+                            None if self.instruction_ids is None
+                            else self.instruction_ids.to(device))
 
     def for_task(self, task: str) -> TrainingData:
         return self.subset(torch.nonzero(self.task_index == self.task_names.index(task)).flatten())
@@ -80,13 +87,15 @@ class TrainingData:
         names: list[str] = []
         rows: list[torch.Tensor] = []
         token_rows: list[torch.Tensor | None] = []
+        id_rows: list[torch.Tensor | None] = []
         for part in parts:
             for i, name in enumerate(part.task_names):
                 if name not in names:
                     names.append(name)
                     rows.append(part.instruction_table[i])
-                    tokens = part.instruction_tokens
+                    tokens, ids = part.instruction_tokens, part.instruction_ids
                     token_rows.append(None if tokens is None else tokens[i])
+                    id_rows.append(None if ids is None else ids[i])
         has_tokens = bool(token_rows) and all(r is not None for r in token_rows)
         if has_tokens:  # padded (id 0) to the longest
             width = max(len(r) for r in token_rows)
@@ -102,12 +111,13 @@ class TrainingData:
             torch.stack(rows) if rows else parts[0].instruction_table[:0],
             names,
             torch.stack(token_rows) if has_tokens else None,
+            torch.stack(id_rows) if id_rows and all(r is not None for r in id_rows) else None,
         )
 
 
 def chunk_episodes(
     episodes: list[Episode], task: str, instruction_embedding: np.ndarray, chunk_size: int,
-    instruction_tokens: np.ndarray | None = None,
+    instruction_tokens: np.ndarray | None = None, instruction_id: int | None = None,
 ) -> TrainingData:
     obs_parts: dict[str, list[np.ndarray]] = {k: [] for k in episodes[0].obs}
     action_parts, mask_parts = [], []
@@ -129,6 +139,7 @@ def chunk_episodes(
         [task],
         None if instruction_tokens is None
         else torch.from_numpy(np.asarray(instruction_tokens, np.int64)[None]),
+        None if instruction_id is None else torch.tensor([instruction_id]),
     )
 
 

@@ -84,12 +84,16 @@ def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
     token_ids = tokenize_instructions(texts, cache / "instructions")
     token_ids = token_ids[:, :max(1, int((token_ids != 0).sum(1).max()))]  # no all-padding column
     data = BenchmarkData({}, {}, {})
-    for task, embedding, tokens in zip(tasks, embeddings, token_ids):
-        data.instructions[task] = {"instruction": embedding, "instruction_tokens": tokens}
+    for index, (task, embedding, tokens) in enumerate(zip(tasks, embeddings, token_ids)):
+        # "instruction_id": the task's index in cfg.all_tasks(), which orders the instruction
+        # texts a policy that tokenizes them itself is given (harness/protocol/foundation.py)
+        data.instructions[task] = {"instruction": embedding, "instruction_tokens": tokens,
+                                   "instruction_id": np.int64(index)}
         splits = task_demos(cfg, suite, task)
-        data.train[task] = chunk_episodes(splits["demo"], task, embedding, cfg.chunk_size, tokens)
+        data.train[task] = chunk_episodes(splits["demo"], task, embedding, cfg.chunk_size, tokens,
+                                          index)
         data.heldout[task] = chunk_episodes(splits["heldout"], task, embedding, cfg.chunk_size,
-                                            tokens)
+                                            tokens, index)
     return data
 
 

@@ -35,6 +35,7 @@ import torch
 from harness.common.device import autocast
 from harness.common.seeding import generator
 from harness.data.datasets import TrainingData, instruction_entries
+from policies.base import noise_shape
 from suites import Observation, StepResult, Suite, get_suite
 
 
@@ -149,7 +150,7 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
     policy.eval()
     device = policy_device(policy)
     n_steps = settings.n_action_steps
-    chunk_shape = (policy.config.chunk_size, policy.config.action_dim)
+    chunk_shape = noise_shape(policy, 1)[1:]
     queues: dict[str, deque[int]] = {}
     for i, ep in enumerate(episodes):
         queues.setdefault(ep.task, deque()).append(i)
@@ -445,7 +446,7 @@ def heldout_loss(policy, data: TrainingData, seed: int) -> float:
     policy.eval()
     device = next(policy.parameters()).device
     g = torch.Generator().manual_seed(seed)
-    noise = torch.randn(data.actions.shape, generator=g)
+    noise = torch.randn(noise_shape(policy, len(data)), generator=g)
     time = policy.sample_time(len(data), g)
     batch = data.batch(torch.arange(len(data)))
     batch["noise"], batch["time"] = noise, time

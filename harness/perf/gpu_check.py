@@ -40,6 +40,7 @@ from harness.common.device import autocast, resolve_device
 from harness.common.errors import RetainError
 from harness.config.benchmark import parse_overrides
 from harness.perf.throughput import (
+    SYNTHETIC_INSTRUCTION,
     _peak_tflops,
     _policy,
     measure_eval,
@@ -48,9 +49,11 @@ from harness.perf.throughput import (
     synthetic_data,
 )
 from harness.train.optim import ClippedAdamW
+from suites.base import CAMERA_KEYS
 
 ROOT = Path(__file__).resolve().parents[2]
-PARTS = ("train", "methods", "eval", "resume")
+PARTS = ("train", "methods", "lerobot", "eval", "resume")
+LEROBOT_IMAGE_SIZE = 32  # the lerobot part's two cameras (tiny PI0's 16-px patches)
 STAGE_DONE = re.compile(r"stage (\d+) \(.*\) done")
 RESUMED = re.compile(r"resuming after stage (\d+) of (\d+)")
 
@@ -263,18 +266,25 @@ def train_figure(device: torch.device, size: CheckSize, eager, compiled, latency
 
 # -- methods ---------------------------------------------------------------------------------
 
-def check_methods(device: torch.device, size: CheckSize, work: Path) -> PartResult:
+def check_methods(device: torch.device, size: CheckSize, work: Path,
+                  policy_name: str = "mlp") -> PartResult:
     """Every registered method with the policy on the device, as a run calls it: its stage-0
     hook on the foundation data (on the CPU, as the runner hands it over), a stage, its state
     through a stage checkpoint (which loads on the CPU), then the next stage with a fresh
-    instance, as a resumed run continues."""
+    instance, as a resumed run continues. `policy_name` lerobot_pi0: LeRobot's PI0 at its tiny
+    size with two cameras (the part "lerobot")."""
     from harness.evaluate.stages import load_checkpoint, save_checkpoint
     from harness.train.trainer import TrainSettings, train_stage
     from methods import get_method, method_names
     from methods.base import TaskContext
 
-    result = PartResult("methods")
-    data = [synthetic_data(256, seed, task) for seed, task in
+    lerobot = policy_name != "mlp"
+    result = PartResult("lerobot" if lerobot else "methods")
+    image_size = LEROBOT_IMAGE_SIZE if lerobot else 0
+    fields = ({"image_keys": CAMERA_KEYS, "image_size": image_size,
+               "instructions": (SYNTHETIC_INSTRUCTION,)} if lerobot else {})
+    policy_size = "tiny" if lerobot else size.methods_policy_size
+    data = [synthetic_data(256, seed, task, image_size=image_size) for seed, task in
             enumerate(("foundation", "task-1", "task-2"))]
     settings = TrainSettings(size.methods_steps, 32, 1e-3)
     # every method at its defaults, and ConSFT's other variants (their own code paths)
@@ -285,7 +295,7 @@ def check_methods(device: torch.device, size: CheckSize, work: Path) -> PartResu
         cls = get_method(method_name)
         config = cls.Config(**overrides) if overrides else None
         try:
-            policy = _policy(size.methods_policy_size).to(device)
+            policy = _policy(policy_size, policy_name, **fields).to(device)
             policy.state_norm.fit(data[0].obs["state"])
             policy.action_norm.fit(data[0].actions.flatten(0, 1))
             method = cls(config)
@@ -314,7 +324,7 @@ def check_methods(device: torch.device, size: CheckSize, work: Path) -> PartResu
     result.figure = (f"{len(names) - len(broken)} of {len(names)} methods (ConSFT's variants "
                      f"too) trained a stage, "
                      f"resumed from its checkpoint and trained the next on {device} "
-                     f"({size.methods_policy_size} mlp, {size.methods_steps} steps a stage)")
+                     f"({policy_size} {policy_name}, {size.methods_steps} steps a stage)")
     return result
 
 
@@ -572,6 +582,7 @@ def run_check(device: torch.device, parts: list[str], work: Path) -> list[PartRe
           f"CUDA {torch.version.cuda}; parts: {', '.join(parts)}", flush=True)
     checks = {"train": lambda: check_train(device, size),
               "methods": lambda: check_methods(device, size, work),
+              "lerobot": lambda: check_methods(device, size, work, "lerobot_pi0"),
               "eval": lambda: check_eval(device, size),
               "resume": lambda: check_resume(device, size, work)}
     results = []

@@ -45,11 +45,13 @@ def synthetic_data(n: int, seed: int, task: str = "task", chunk: int = 4,
     for key in CAMERAS if image_size else ():
         obs[key] = torch.randint(0, 256, (n, image_size, image_size, 3), dtype=torch.uint8,
                                  generator=g)
-    tokens = torch.from_numpy(tokenize_instructions(["pick up the black bowl and place it on "
-                                                     "the plate"]))
+    tokens = torch.from_numpy(tokenize_instructions([SYNTHETIC_INSTRUCTION]))
     return TrainingData(obs, torch.randn(n, chunk, action_dim, generator=g).clamp(-1, 1),
                         torch.ones(n, chunk, dtype=torch.bool), torch.zeros(n, dtype=torch.long),
-                        torch.randn(1, 384, generator=g), [task], tokens)
+                        torch.randn(1, 384, generator=g), [task], tokens, torch.tensor([0]))
+
+
+SYNTHETIC_INSTRUCTION = "pick up the black bowl and place it on the plate"
 
 
 def _policy(size: str, policy: str = "mlp", **fields) -> torch.nn.Module:

@@ -13,6 +13,7 @@ import torch
 from harness.common.device import resolve_device
 from harness.common.seeding import derive_seed, generator
 from harness.config.benchmark import BenchConfig
+from harness.data.lerobot.checkpoint import checkpoint_features
 from harness.data.prepare import BenchmarkData, demo_spec
 from harness.evaluate.rollouts import Evaluator
 from harness.evaluate.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
@@ -20,6 +21,7 @@ from harness.train.trainer import Snapshots, TrainSettings, train_stage
 from methods import Method, TaskContext
 from policies import get_policy, make_config, policy_for_config
 from policies.flow_matching.modeling import ARCHITECTURE_VERSION
+from policies.lerobot.checkpoint import checkpoint_identity
 from suites import Suite
 from suites.base import CAMERA_KEYS
 
@@ -39,11 +41,30 @@ class Foundation:
 
 
 def policy_config(cfg: BenchConfig, suite: Suite):
-    """The `cfg.policy` policy's config for this suite; ValueError on an unknown policy or size."""
+    """The `cfg.policy` policy's config for this suite; ValueError on an unknown policy or size.
+    Of the optional fields (policies/base.py) the harness fills those the Config declares."""
+    image_keys = CAMERA_KEYS if cfg.cameras else ()
+    declared = get_policy(cfg.policy).Config.__dataclass_fields__
+    optional = {}
+    if "path" in declared:
+        optional["path"] = cfg.policy_path
+    if "instructions" in declared:  # a batch's "instruction_id" indexes them: cfg.all_tasks()
+        optional["instructions"] = tuple(suite.instruction(t) for t in cfg.all_tasks())
+    if "rotate_images" in declared:
+        optional["rotate_images"] = cfg.lerobot_rotate_images
+    if "features" in declared and cfg.policy_path:
+        features = checkpoint_features(cfg, suite)
+        optional["features"] = tuple(features.items())
+        image_keys = tuple(k for k in image_keys if k in features)
+    if "weights" in declared and cfg.policy_path:
+        optional["weights"] = checkpoint_identity(cfg.policy_path)
+    if cfg.policy_path and "path" not in declared:
+        raise ValueError(f"policy {cfg.policy!r} takes no policy_path; the LeRobot policies "
+                         f"(lerobot_pi0, lerobot_pi05, lerobot_smolvla) do")
     return make_config(cfg.policy, state_dim=suite.state_dim, action_dim=suite.action_dim,
                        size=cfg.policy_size, chunk_size=cfg.chunk_size,
-                       n_action_steps=cfg.n_action_steps,
-                       image_keys=CAMERA_KEYS if cfg.cameras else (), image_size=cfg.image_size)
+                       n_action_steps=cfg.n_action_steps, image_keys=image_keys,
+                       image_size=cfg.image_size, **optional)
 
 
 def build_policy(cfg: BenchConfig, suite: Suite) -> torch.nn.Module:
@@ -90,7 +111,9 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
     weights, stage0_path = directory / "policy.pt", directory / f"stage0-{stage0_key(cfg, suite)}.pt"
     torch.manual_seed(derive_seed(seed, "foundation"))  # the initial weights depend on the seed only
     policy = build_policy(cfg, suite)
-    if weights.exists():
+    if cfg.policy_path:  # a LeRobot checkpoint is the foundation: evaluated, never retrained
+        final_loss = float("nan")
+    elif weights.exists():
         saved = load_checkpoint(weights)
         policy.load_state_dict(saved["policy"])
         final_loss = saved["final_loss"]

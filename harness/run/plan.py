@@ -17,6 +17,7 @@ from harness.config.benchmark import (
     base_config,
     changed_settings,
     file_class_spec,
+    parse_overrides,
     resolve,
     run_label,
     set_field,
@@ -83,6 +84,14 @@ def plan(args: list[str]) -> Plan:
         raise RetainError(f"task {both[0]!r} is both a foundation and a stream task in {cfg.name}")
     if not cfg.stream_tasks or not cfg.foundation_tasks:
         raise RetainError(f"benchmark {cfg.name} needs at least one foundation and one stream task")
+    given = parse_overrides(args)
+    _cameras_for(cfg, base, given)
+    if cfg.policy_path:  # the checkpoint fixes its chunk and cameras, for the labels' base too
+        from harness.data.lerobot.checkpoint import adopt_checkpoint, checkpoint_settings
+
+        adopt_checkpoint(cfg, suite, given)
+        for key, value in checkpoint_settings(cfg, suite).items():
+            setattr(base, key, value)
     from harness.common.device import resolve_device
     from harness.protocol.foundation import policy_config
 
@@ -122,6 +131,22 @@ def plan(args: list[str]) -> Plan:
             changed = _changed(run_cfg, base, method, own, point)
             variants.append(Variant(run_cfg, method, label, _portable(name), own, changed))
     return Plan(cfg, variants)
+
+
+def _cameras_for(cfg: BenchConfig, base: BenchConfig, given: dict[str, str]) -> None:
+    """A policy that reads camera images (`needs_cameras`: LeRobot's VLAs need at least one)
+    turns them on, for the labels' base too; `cameras=false` given for it is refused."""
+    from policies import get_policy
+
+    try:
+        needs = getattr(get_policy(cfg.policy), "needs_cameras", False)
+    except ValueError:
+        return  # an unknown policy is named below, with the valid ones
+    if needs and not cfg.cameras:
+        if "cameras" in given:
+            raise RetainError(f"cameras={given['cameras']} for policy {cfg.policy!r}, which reads "
+                              f"camera images: leave cameras on")
+        cfg.cameras = base.cameras = True
 
 
 def _portable(spec: str) -> str:

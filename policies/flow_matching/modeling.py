@@ -49,6 +49,7 @@ class ConditionedBlock(nn.Module):
 
 class FlowMatchingPolicy(FlowMatchingBase):
     Config = FlowMatchingConfig
+    lora_target = r"(action_in|blocks\..*|action_out\..*)"  # LoRA's default: the action expert
 
     def __init__(self, config: FlowMatchingConfig):
         super().__init__(config)

@@ -105,6 +105,8 @@ class PrefixCache:
 class Pi0Policy(FlowMatchingBase):
     Config = Pi0Config
     ARCHITECTURE_VERSION = 1  # part of the foundation cache key: bump when the network changes
+    # LoRA's default: the action expert (its layers, the chunk's projections and time MLP)
+    lora_target = r"(action_in|action_time_mlp\..*|expert_layers\..*|action_out)"
 
     def __init__(self, config: Pi0Config):
         super().__init__(config)

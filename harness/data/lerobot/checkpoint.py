@@ -1,0 +1,91 @@
+"""A LeRobot checkpoint (`policy_path`) against the suite: which of Retain's observations each of
+its input features is, and the settings it fixes (chunk, cameras, their size).
+
+Feature names are matched as a dataset's are (`lerobot_keys` first, then the reader's
+CONVENTIONS), and the images turned by `lerobot_rotate_images`: both describe the LeRobot side.
+Every mismatch is one line naming the feature, found at plan time before anything runs.
+"""
+
+from __future__ import annotations
+
+import functools
+
+from harness.common.errors import RetainError
+from harness.config.benchmark import BenchConfig
+from harness.data.lerobot.reader import CONVENTIONS, PROPRIO_HINT, key_overrides
+from policies.lerobot.checkpoint import CheckpointError, CheckpointSpec, checkpoint_spec
+from suites import Suite
+from suites.base import CAMERA_KEYS
+
+# the settings a checkpoint fixes, which a command line may not set otherwise
+FIXED_BY_CHECKPOINT = ("chunk_size", "n_action_steps", "cameras", "image_size")
+
+
+@functools.lru_cache(maxsize=8)
+def spec(path: str) -> CheckpointSpec:
+    try:
+        return checkpoint_spec(path)
+    except CheckpointError as exc:
+        raise RetainError(str(exc)) from None
+
+
+def checkpoint_features(cfg: BenchConfig, suite: Suite) -> dict[str, str]:
+    """Retain key ("state", a camera) -> the checkpoint's input feature, checked against the
+    suite's state width, action width and cameras."""
+    s = spec(cfg.policy_path)
+    where = f"policy_path {cfg.policy_path!r}"
+    overrides = key_overrides(cfg)
+    if s.action_dim != suite.action_dim:
+        raise RetainError(f"{where} acts in {s.action_dim} dimensions; suite {suite.name!r} "
+                          f"takes {suite.action_dim}")
+    if s.state is None:
+        raise RetainError(f"{where} reads no state feature; Retain gives every policy the "
+                          f"suite's state")
+    state, width = s.state
+    if "state" in overrides and overrides["state"] != state:
+        raise RetainError(f"{where} has no state feature {overrides['state']!r} (lerobot_keys); "
+                          f"its state is {state!r}")
+    if width != suite.state_dim:
+        raise RetainError(f"{where}'s {state!r} is {width}-D; suite {suite.name!r} gives "
+                          f"{suite.state_dim}-D{PROPRIO_HINT.get((suite.name, width), '')}")
+    features = {"state": state}
+    for name, shape in s.images.items():
+        key = next((k for k in CAMERA_KEYS if overrides.get(k) == name), None) or next(
+            (k for k in CAMERA_KEYS if k not in overrides and name in CONVENTIONS[k]), None)
+        if key is None or key in features:
+            raise RetainError(f"{where}'s image feature {name!r} is none of the suite's cameras "
+                              f"({', '.join(CAMERA_KEYS)}); name it with lerobot_keys="
+                              f"{CAMERA_KEYS[0]}:{name}")
+        if len(shape) != 3 or shape[1] != shape[2]:
+            raise RetainError(f"{where}'s image feature {name!r} is {list(shape)}; the suite "
+                              f"renders square images (C, S, S)")
+        features[key] = name
+    sizes = {s.images[features[k]][1] for k in CAMERA_KEYS if k in features}
+    if len(sizes) > 1:
+        raise RetainError(f"{where}'s cameras have sizes {sorted(sizes)}; the suite renders one "
+                          f"image_size for all")
+    return features
+
+
+def checkpoint_settings(cfg: BenchConfig, suite: Suite) -> dict:
+    """The benchmark settings the checkpoint fixes: its chunk, n_action_steps, and its cameras
+    at their resolution."""
+    s = spec(cfg.policy_path)
+    features = checkpoint_features(cfg, suite)
+    cameras = [k for k in CAMERA_KEYS if k in features]
+    settings = {"chunk_size": s.chunk_size, "n_action_steps": s.n_action_steps,
+                "cameras": bool(cameras)}
+    if cameras:
+        settings["image_size"] = s.images[features[cameras[0]]][1]
+    return settings
+
+
+def adopt_checkpoint(cfg: BenchConfig, suite: Suite, given: dict[str, str]) -> None:
+    """Set what the checkpoint fixes on `cfg`; a command-line value (`given`) that differs is
+    refused in one line."""
+    for key, value in checkpoint_settings(cfg, suite).items():
+        if key in given and getattr(cfg, key) != value:
+            raise RetainError(f"{key}={given[key]} conflicts with policy_path "
+                              f"{cfg.policy_path!r}, whose {key} is {value}: a checkpoint sets "
+                              f"its own")
+        setattr(cfg, key, value)

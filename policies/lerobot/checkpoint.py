@@ -1,0 +1,161 @@
+"""A LeRobot checkpoint: where its folder is, what it is (its identity, its features and chunk),
+and whether its weights really loaded.
+
+`policy_path` names a folder (LeRobot's `config.json`, `model.safetensors` and processor files,
+plus whatever Retain put beside them: a reduced size's `retain_architecture.json`, a local
+`tokenizer/`, SmolVLA's `vlm/` config) or a hub id, which is downloaded where the hub is
+reachable. Every failure is one line (`CheckpointError`) naming the path and what to do.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import io
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+WEIGHTS_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+HUB_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used; the message is one line."""
+
+
+def hub_offline() -> bool:
+    return os.environ.get("HF_HUB_OFFLINE", "").lower() in ("1", "true", "yes", "on")
+
+
+@functools.lru_cache(maxsize=8)
+def checkpoint_folder(path: str) -> Path:
+    """The local folder of `path`: itself, or a hub id's downloaded snapshot."""
+    local = Path(path).expanduser()
+    if local.is_dir():
+        if not (local / CONFIG_FILE).is_file():
+            raise CheckpointError(f"policy_path {path!r} is a folder without LeRobot's "
+                                  f"{CONFIG_FILE}: expected a saved LeRobot policy")
+        return local.resolve()
+    if not HUB_ID.match(path):
+        raise CheckpointError(f"policy_path {path!r}: no such folder, and not a hub id "
+                              f"(owner/name)")
+    if hub_offline():
+        raise CheckpointError(f"policy_path {path!r} is not a folder here and the hub is off "
+                              f"(HF_HUB_OFFLINE=1): give a local folder, or run where the hub "
+                              f"is reachable with HF_HUB_OFFLINE=0")
+    from huggingface_hub import snapshot_download
+
+    try:
+        return Path(snapshot_download(path))
+    except Exception as exc:  # no network, unknown repo, gated repo: one line either way
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"policy_path {path!r}: the hub could not give it "
+                              f"({type(exc).__name__}: {reason})") from None
+
+
+def weights_file(folder: Path) -> Path:
+    path = folder / WEIGHTS_FILE
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {folder} has no {WEIGHTS_FILE}: its weights cannot "
+                              f"load (LeRobot would return a random model)")
+    return path
+
+
+def checkpoint_identity(path: str) -> str:
+    """The checkpoint's weights digest: what a run key records of a `policy_path`."""
+    return weights_digest(checkpoint_folder(path))
+
+
+def weights_digest(folder: Path) -> str:
+    """SHA-256 of the weights file: the checkpoint's identity in run keys."""
+    path = weights_file(folder)
+    stat = path.stat()
+    return _digest(str(path), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=8)
+def _digest(path: str, size: int, mtime_ns: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 24), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def read_config(folder: Path):
+    """LeRobot's config of the checkpoint (its own class, by the file's `type`)."""
+    from lerobot.configs import PreTrainedConfig
+
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            return PreTrainedConfig.from_pretrained(folder)
+    except Exception as exc:
+        raise CheckpointError(f"checkpoint {folder}: its {CONFIG_FILE} does not parse "
+                              f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+                              ) from None
+
+
+@dataclass(frozen=True)
+class CheckpointSpec:
+    """What the plan checks a suite against: the checkpoint's type, chunk and features."""
+
+    kind: str  # LeRobot's policy type ("pi0", "pi05", "smolvla", ...)
+    chunk_size: int
+    n_action_steps: int
+    state: tuple[str, int] | None  # (feature name, width)
+    images: dict[str, tuple[int, int, int]]  # feature name -> (C, H, W)
+    action_dim: int
+
+
+def checkpoint_spec(path: str) -> CheckpointSpec:
+    """The checkpoint's type, chunk and input and output features, from its config alone."""
+    from lerobot.configs import FeatureType
+
+    config = read_config(checkpoint_folder(path))
+    inputs = config.input_features or {}
+    states = [(k, int(f.shape[0])) for k, f in inputs.items() if f.type is FeatureType.STATE]
+    images = {k: tuple(int(s) for s in f.shape) for k, f in inputs.items()
+              if f.type is FeatureType.VISUAL}
+    actions = [int(f.shape[0]) for f in (config.output_features or {}).values()
+               if f.type is FeatureType.ACTION]
+    if not actions:
+        raise CheckpointError(f"checkpoint {path!r} declares no action output feature")
+    return CheckpointSpec(config.type, int(config.chunk_size), int(config.n_action_steps),
+                          states[0] if states else None, images, actions[0])
+
+
+def check_loaded(model: torch.nn.Module, folder: Path) -> None:
+    """Every weight of the file is in the model, equal, and every weight of the model came from
+    the file (or shares its storage with one that did, as tied embeddings do). LeRobot's
+    loaders can return a randomly initialised model after a failed load with only a printed
+    warning; this turns that into an error."""
+    from safetensors.torch import load_file
+
+    stored = load_file(weights_file(folder))
+    fix = getattr(model, "_fix_pytorch_state_dict_keys", None)  # PI0 / PI0.5 rename keys so
+    if fix is not None:
+        stored = fix(stored, model.config)
+        stored = {k if k.startswith("model.") else f"model.{k}": v for k, v in stored.items()}
+    own = model.state_dict()
+    unknown = [k for k in stored if k not in own]
+    if unknown:
+        raise CheckpointError(f"checkpoint {folder}: {len(unknown)} weights of "
+                              f"{WEIGHTS_FILE} are not in a {type(model).__name__} built from "
+                              f"its config (e.g. {unknown[0]}): it did not load")
+    differ = [k for k, v in stored.items()
+              if own[k].shape != v.shape or not torch.equal(own[k].detach().cpu().to(v.dtype), v)]
+    if differ:
+        raise CheckpointError(f"checkpoint {folder}: {len(differ)} weights differ from "
+                              f"{WEIGHTS_FILE} after loading (e.g. {differ[0]}): it did not load")
+    loaded = {own[k].data_ptr() for k in stored}
+    missing = [k for k, v in own.items() if k not in stored and v.data_ptr() not in loaded]
+    if missing:
+        raise CheckpointError(f"checkpoint {folder}: {len(missing)} weights of the model are "
+                              f"not in {WEIGHTS_FILE} (e.g. {missing[0]}): they would stay "
+                              f"random")

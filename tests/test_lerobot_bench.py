@@ -1,0 +1,81 @@
+"""LeRobot's PI0 through whole benchmark runs: the paper's LIBERO protocol with LIBERO's two
+cameras from a random init pre-trained as the foundation, and a checkpoint that is the
+foundation itself (evaluated at stage 0, never retrained)."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from harness.run.cli import main
+from policies import get_policy
+from suites.base import CAMERA_KEYS
+
+
+def test_libero_paper_tiny_with_lerobots_pi0_on_both_cameras(tmp_path):
+    args = ["bench", "BENCH=libero-paper", "PROFILE=tiny", "METHOD=consft",
+            "policy=lerobot_pi0", "image_size=32", f"results_dir={tmp_path}/results",
+            f"cache_dir={tmp_path}/cache", "progress=false", "eval_workers=1"]
+    assert main(args) == 0
+    runs = list((tmp_path / "results" / "libero-paper-tiny").glob("consft*/seed0"))
+    assert len(runs) == 1
+    run = runs[0]
+    for name in ("success_matrix.csv", "metrics.json", "config.yaml", "success_matrix.png"):
+        assert (run / name).stat().st_size > 0, name
+    config = (run / "config.yaml").read_text()
+    assert "policy: lerobot_pi0" in config and "cameras: true" in config
+    lines = (run / "success_matrix.csv").read_text().splitlines()
+    assert len(lines) == 1 + 2  # stage 0 and the one grouped Spatial stage tiny keeps
+    metrics = json.loads((run / "metrics.json").read_text())["metrics"]
+    assert np.isfinite(metrics["offline_retention"] if "offline_retention" in metrics
+                       else metrics["heldout_loss_ratio"])
+    from harness.data.demos import read_demo_file  # the demos carry LIBERO's two cameras
+
+    demo = next((tmp_path / "cache" / "demos" / "libero").glob("*.hdf5"))
+    spec, episodes = read_demo_file(demo)
+    assert set(CAMERA_KEYS) <= set(episodes[0].obs)
+    assert episodes[0].obs[CAMERA_KEYS[0]].shape[1:] == (32, 32, 3)
+
+
+@pytest.fixture
+def checkpoint(tmp_path):
+    """A tiny PI0 for Meta-World (39-D state, 4-D actions) saved as a LeRobot folder."""
+    cls = get_policy("lerobot_pi0")
+    torch.manual_seed(0)
+    policy = cls(cls.Config(state_dim=39, action_dim=4, size="tiny", chunk_size=4,
+                            n_action_steps=4, image_keys=CAMERA_KEYS, image_size=32,
+                            instructions=("a",)))
+    return policy.save_folder(tmp_path / "ckpt")
+
+
+def test_a_checkpoint_is_the_foundation_evaluated_never_retrained(checkpoint, tmp_path,
+                                                                   monkeypatch):
+    import harness.protocol.foundation as foundation
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the checkpoint was retrained")
+
+    monkeypatch.setattr(foundation, "train_stage", fail)
+    args = ["bench", "PROFILE=tiny", "METHOD=sft", f"policy_path={checkpoint}",
+            "policy=lerobot_pi0", f"results_dir={tmp_path}/results",
+            f"cache_dir={tmp_path}/cache", "progress=false", "eval_workers=1"]
+    assert main(args) == 0
+    run = next((tmp_path / "results" / "mw-quick-tiny").glob("sft*/seed0"))
+    stages = json.loads((run / "metrics.json").read_text())["stages"]
+    assert len(stages) == 3 and np.isnan(stages[0]["train_loss"])  # stage 0: not trained here
+    from harness.config.benchmark import resolve
+    from harness.protocol.foundation import foundation_key
+    from suites import get_suite
+
+    cfg = resolve(["PROFILE=tiny", "policy=lerobot_pi0", f"policy_path={checkpoint}",
+                   "cameras=true", "image_size=32"])
+    suite = get_suite(cfg.suite)
+    before = foundation_key(cfg, suite, 0)
+    from safetensors.torch import load_file, save_file
+
+    weights = load_file(checkpoint / "model.safetensors")
+    name = next(iter(weights))
+    weights[name] = weights[name] + 1.0
+    save_file(weights, checkpoint / "model.safetensors")
+    assert foundation_key(cfg, suite, 0) != before  # the run key records the weights
