@@ -47,6 +47,9 @@ def get_method(spec: str) -> type[Method]:
         if _REGISTRY.get(cls.name, cls) is not cls:  # its runs would be filed as that method's
             raise ValueError(f"{spec!r} needs a name of its own (a class attribute such as "
                              f"name = \"my_method\"): {cls.name!r} is a built-in method's")
+        if cls.evaluation_view is not Method.evaluation_view and not cls.task_aware_eval:
+            raise ValueError(f"{spec!r} overrides evaluation_view but does not set "
+                             f"task_aware_eval = True, so its view would never be entered")
         return cls
     _load_builtins()
     if spec not in _REGISTRY:

@@ -49,6 +49,47 @@ def snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
     return {n: p.detach().clone() for n, p in module.named_parameters()}
 
 
+PAST_DATA, REFERENCE_COPY, TASK_IDENTITY = "past data", "reference copy", "task identity at evaluation"
+REFERENCE_SHARE = 0.5  # a module holding this share of the policy's parameters is a copy of it
+
+
+def observed_needs(method: Method, policy: torch.nn.Module, tasks: list[str]) -> list[str]:
+    """What `method` keeps after a stage that trained `tasks`, found by looking, not by asking
+    its class attributes (a user's method may not set them): "past data" when it holds
+    TrainingData with samples of other tasks, "reference copy" when it holds a network with at
+    least REFERENCE_SHARE of the policy's parameters that are not the policy's own (a frozen
+    copy; an adapter around the policy's layers shares them). Weights kept as a dict of
+    tensors (L2's anchor) are neither: they are not a network run in training."""
+    own = {p.data_ptr() for p in policy.parameters()}
+    size = sum(p.numel() for p in policy.parameters())
+    found: list[str] = []
+    for value in _held(vars(method), depth=3):
+        if isinstance(value, TrainingData) and PAST_DATA not in found:
+            held = {value.task_names[i] for i in value.task_index.unique().tolist()}
+            if held - set(tasks):
+                found.append(PAST_DATA)
+        elif isinstance(value, torch.nn.Module) and value is not policy \
+                and REFERENCE_COPY not in found:
+            extra = sum(p.numel() for p in value.parameters() if p.data_ptr() not in own)
+            if size and extra >= REFERENCE_SHARE * size:
+                found.append(REFERENCE_COPY)
+    return [need for need in (PAST_DATA, REFERENCE_COPY) if need in found]
+
+
+def _held(value, depth: int):
+    """The objects in a method's attributes, through dicts, lists and tuples."""
+    if isinstance(value, dict):
+        items = value.values()
+    elif isinstance(value, (list, tuple)):
+        items = value
+    else:
+        yield value
+        return
+    if depth > 0:
+        for item in items:
+            yield from _held(item, depth - 1)
+
+
 @dataclass
 class MethodConfig:
     """Hyperparameters of a method; subclasses extend it with their own fields."""
@@ -73,12 +114,13 @@ class Method:
         self.config = config if config is not None else self.Config()
 
     @classmethod
-    def needs(cls) -> str:
+    def needs(cls, observed: tuple[str, ...] | list[str] = ()) -> str:
         """What the method needs, as the report prints it: "past data, reference copy", or
-        "none" for a method that uses only the current task's data."""
-        flags = [(cls.uses_past_data, "past data"), (cls.uses_reference_copy, "reference copy"),
-                 (cls.task_aware_eval, "task identity at evaluation")]
-        return ", ".join(name for on, name in flags if on) or "none"
+        "none" for a method that uses only the current task's data. `observed` adds what
+        `observed_needs` found it keeping, whatever its class attributes say."""
+        flags = [(cls.uses_past_data, PAST_DATA), (cls.uses_reference_copy, REFERENCE_COPY),
+                 (cls.task_aware_eval, TASK_IDENTITY)]
+        return ", ".join(name for on, name in flags if on or name in observed) or "none"
 
     # -- hooks -------------------------------------------------------------------------------
 

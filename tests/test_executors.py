@@ -159,10 +159,13 @@ def test_a_setting_given_outside_grid_gets_its_own_run_directory():
     (["executor=local"], 2, (2, 1)),  # one evaluation worker per job, a job per core
     (["executor=local", "eval_workers=2"], 2, (1, 2)),  # each job keeps both cores busy
     (["executor=local", "jobs=3"], 8, (3, 2)),  # three jobs share the cores for evaluation
-    (["executor=local"], 16, (4, 4)),  # never more jobs at once than there are jobs
+    (["executor=local"], 16, (4, 2)),  # never more jobs at once than there are jobs, and
+    # never more evaluation workers than eval_shards=2 (a CPU policy's shards: more get no work)
     (["executor=serial"], 2, (1, 2)),
+    (["executor=serial"], 16, (1, 2)),
     (["executor=ray"], 2, (4, 1)),  # Ray places the tasks, one evaluation worker each
-    (["executor=ray", "jobs=2", "eval_workers=3"], 2, (2, 3)),
+    (["executor=ray", "jobs=2", "eval_workers=3"], 2, (2, 2)),  # 3 asked, eval_shards=2 run
+    (["executor=ray", "jobs=2", "eval_workers=3", "eval_shards=4"], 2, (2, 3)),
 ])
 def test_jobs_at_once_follow_the_cores(args, cores, expected):
     cfg = resolve(["PROFILE=tiny", *args])
@@ -177,11 +180,11 @@ LIBERO_WORKER_MB = 500 + 42 * 180
 @pytest.mark.parametrize("args, cores, memory_gb, expected", [
     (["executor=local"], 2, 24, (2, 1)),  # the two-core machine: both fit, as before
     (["executor=local"], 16, 24, (2, 1)),  # 16 cores, but two workers' simulators fit
-    (["executor=local"], 16, 128, (4, 4)),  # 13 fit: 4 jobs, of whose 4 workers 2 have work
+    (["executor=local"], 16, 128, (4, 2)),  # 13 fit: 4 jobs of the 2 workers that have work
     (["executor=local"], 16, 8, (1, 1)),  # not even one fits: one, rather than none
     (["executor=local", "eval_workers=2"], 16, 24, (1, 2)),  # a setting given is kept
     (["executor=local", "jobs=4"], 16, 24, (4, 1)),  # ... and the rest fit around it
-    (["executor=serial"], 16, 24, (1, 16)),  # 2 fit, and only eval_shards=2 have work
+    (["executor=serial"], 16, 24, (1, 2)),  # 2 fit, and only eval_shards=2 have work
     (["executor=ray"], 16, 8, (4, 1)),  # Ray's machines are not this one
 ])
 def test_jobs_at_once_follow_the_memory(args, cores, memory_gb, expected):
@@ -194,6 +197,36 @@ def test_jobs_at_once_follow_the_memory(args, cores, memory_gb, expected):
         assert slots.memory_note == ""
     else:
         assert "7.9 GB of simulators" in slots.memory_note and f"{memory_gb:.1f} GB" in slots.memory_note
+
+
+@pytest.mark.parametrize("args, cores, expected", [
+    (["executor=local", "eval_workers=1000"], 16, (4, 2)),  # eval_shards=2 run, not 1000
+    (["executor=serial", "eval_workers=1000", "eval_shards=8"], 16, (1, 8)),
+    (["executor=serial", "eval_workers=1000", "eval_shards=64"], 16, (1, 16)),  # the cores
+    (["executor=ray", "eval_workers=1000"], 16, (4, 2)),  # a Ray task asks for 2 cores
+])
+def test_evaluation_workers_are_the_ones_that_will_run(args, cores, expected):
+    """`eval_workers=1000` once printed "1000 evaluation workers each" while 2 ran (a CPU
+    policy is evaluated in eval_shards shards, one per worker): the plan says what runs, never
+    starts more processes than there are shards (or cores), and says why in one line."""
+    cfg = resolve(["PROFILE=tiny", *args])
+    slots = plan_slots(cfg, n_jobs=4, cores=cores)
+    assert (slots.parallel, slots.eval_workers) == expected
+    assert slots.workers_note.startswith(f"{expected[1]} evaluation worker(s) per job, not "
+                                         "eval_workers=1000: ")
+    assert "\n" not in slots.workers_note
+    assert plan_slots(resolve(["PROFILE=tiny", "eval_workers=2"]), 4, cores=cores).workers_note == ""
+
+
+def test_the_banner_names_the_workers_that_run(tmp_path, capsys):
+    from harness.run.cli import main
+
+    assert main(["bench", "PROFILE=tiny", "METHOD=sft", "eval_workers=1000", "executor=serial",
+                 f"results_dir={tmp_path}/results", f"cache_dir={tmp_path}/cache",
+                 "progress=false"]) == 0
+    out = capsys.readouterr().out
+    assert "(1 at once, 2 evaluation workers each)" in out and "1000 evaluation" not in out
+    assert "2 evaluation worker(s) per job, not eval_workers=1000" in out
 
 
 def test_an_evaluation_worker_holds_a_simulator_per_task():

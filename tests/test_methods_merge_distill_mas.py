@@ -312,7 +312,7 @@ def test_tiny_end_to_end_for_merge_distill_mas(tiny_comparison):
     merge = json.loads((tiny_comparison / "merge[alpha=0.0]" / "seed0" / "metrics.json").read_text())
     # at alpha = 0 every stage ends on the foundation's weights: nothing moved, nothing lost
     assert merge["metrics"]["update_relative_l2"] == 0.0
-    assert merge["metrics"]["offline_retention"] == 1.0
+    assert merge["metrics"]["heldout_loss_ratio"] == 1.0
     distill = json.loads((tiny_comparison / "distill" / "seed0" / "metrics.json").read_text())
     assert distill["metrics"]["update_relative_l2"] > 0
 

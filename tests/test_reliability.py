@@ -128,6 +128,9 @@ def test_unreachable_tracking_server_is_reported_before_training(tmp_path):
     assert proc.returncode != 0
     assert proc.stderr.strip().count("\n") == 0 and "127.0.0.1:9" in proc.stderr
     assert "unreachable" in proc.stderr
+    # the whole reason, not the first 200 characters of requests' wrapped text ("... [Err")
+    assert proc.stderr.strip().endswith("[Errno 111] Connection refused"), proc.stderr
+    assert "0x" not in proc.stderr and "HTTPConnectionPool" not in proc.stderr
     assert not (tmp_path / "cache").exists()  # no demo was generated
     assert time.time() - start < 60
 

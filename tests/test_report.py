@@ -148,6 +148,11 @@ def test_table_means_match_hand_computed(report):
     assert 0.2 - 1e-9 <= low < 0.3 < high <= 0.4 + 1e-9
     assert sft["retention_n"] == "3" and consft["retention_n"] == "2"
     assert "fwt_mean" not in sft  # FWT/NBT/AUC only when logged
+    # these runs logged the held-out loss ratio under its old key, offline_retention: the
+    # report reads it under its name now
+    assert float(sft["heldout_loss_ratio_mean"]) == pytest.approx(2.0)
+    assert "offline_retention_mean" not in sft
+    assert "held-out loss ratio" in (report[0] / "summary.md").read_text()
 
 
 def test_missing_seed_is_marked(report):
@@ -310,3 +315,30 @@ def test_one_sweep_point_at_two_base_settings_gives_two_rows():
     assert [r.label for r in rows] == ["consft", "consft[variant=dft kappa=1.0]",
                                        "consft[variant=dft kappa=4.0]"]
     assert superseded == 0
+
+
+def test_two_rows_with_the_same_curve_are_both_visible(monkeypatch, tmp_path):
+    """foundation_success.png once drew SFT's line wholly under ConSFT's when they coincided:
+    each row has its own line style and hollow marker, so the lower one shows through."""
+    from matplotlib import colormaps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from harness.report import plots
+    from harness.report.aggregate import summarize
+    from harness.report.groups import build_rows
+
+    figures = []
+    monkeypatch.setattr(plots, "save", lambda fig, path: figures.append(fig))
+    summaries = [summarize(r) for r in build_rows([fake_run("sft", 0), fake_run("consft", 0)])[0]]
+    plots.foundation_curves(tmp_path / "f.png", summaries, "mw-test")
+    ax = figures[0].axes[0]
+    lines = [line for line in ax.get_lines() if line.get_label() in ("sft", "consft")]
+    assert len(lines) == 2 and (lines[0].get_ydata() == lines[1].get_ydata()).all()
+    assert lines[0].get_linestyle() != lines[1].get_linestyle()
+    assert lines[0].get_marker() != lines[1].get_marker()
+    ax.get_legend().remove()  # its swatches would show the color anyway
+    canvas = FigureCanvasAgg(figures[0])
+    canvas.draw()
+    pixels = np.asarray(canvas.buffer_rgba())[..., :3].astype(int)
+    below = np.array(colormaps["tab10"](0)[:3]) * 255  # sft's, drawn first
+    assert (np.abs(pixels - below).max(axis=-1) < 20).sum() > 100

@@ -1,13 +1,15 @@
 """A foundation killed mid-training resumes from its snapshot to the uninterrupted weights."""
 
-import io
 import itertools
+import tempfile
 import time
 import types
+from pathlib import Path
 
 import pytest
 import torch
 
+from harness.evaluate.stages import load_checkpoint, save_checkpoint
 from harness.perf.throughput import _policy, synthetic_data
 from harness.train.trainer import Snapshots, TrainSettings, train_stage
 from methods import Method, TaskContext
@@ -34,20 +36,21 @@ def _train(snapshots=None, kill_at=None):
 
 
 class Store:
-    """Snapshots kept in memory, as the foundation keeps them in a file (a deep copy each)."""
+    """Snapshots kept in a file as the foundation keeps them: written by save_checkpoint, read
+    back by load_checkpoint's weights-only unpickler (the optimizer's moments and the generator
+    state are plain data it allows)."""
 
     def __init__(self, every_seconds=0.0):
-        self.saved, self.steps = None, []
+        self.folder = tempfile.TemporaryDirectory()
+        self.path, self.saved, self.steps = Path(self.folder.name) / "snapshot.pt", False, []
         self.snapshots = Snapshots(self.load, self.save, every_seconds)
 
     def load(self):
-        return None if self.saved is None else torch.load(self.saved, weights_only=False)
+        return load_checkpoint(self.path) if self.saved else None
 
     def save(self, state):
-        buffer = io.BytesIO()
-        torch.save(state, buffer)
-        buffer.seek(0)
-        self.saved = buffer
+        save_checkpoint(self.path, state)
+        self.saved = True
         self.steps.append(state["step"])
 
 

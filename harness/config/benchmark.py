@@ -44,6 +44,9 @@ class BenchConfig:
     foundation_eval_every: Annotated[
         int, Ge(1), doc("1: every stage; N: stage 0, every N-th and the last")] = 1
     max_episode_steps: Annotated[int, Ge(1)] = 200
+    # evaluation and check episodes stop after this many steps, below any task's own limit (a
+    # smoke test of a slow suite, such as LIBERO with cameras on a CPU); demos keep their limits
+    eval_step_cap: Annotated[int, Ge(0), doc("0: no cap")] = 0
     foundation_steps: Annotated[int, Ge(1)] = 4000
     steps_per_task: Annotated[int, Ge(1)] = 1500
     batch_size: Annotated[int, Ge(1)] = 256
@@ -163,6 +166,7 @@ BENCH_KEYS = frozenset(f.name for f in fields(BenchConfig)) - {"method_params", 
 SHARED_BY_SWEEP_POINTS = frozenset({
     "name", "suite", "foundation_tasks", "stream_tasks", "demos_per_task", "spatial_episodes",
     "heldout_demos_per_task", "eval_episodes", "foundation_eval_every", "max_episode_steps",
+    "eval_step_cap",
     "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
     "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
@@ -182,7 +186,7 @@ QUIET_DEFAULTS: dict[str, Any] = {
     "spatial_episodes": 0, "eval_shards": 2, "foundation_eval_every": 1, "stage_sizes": [],
     "until_success": 0.0, "check_every": 250, "check_episodes": 10, "adam_beta1": 0.9,
     "adam_beta2": 0.999, "adam_eps": 1e-8, "heldout_groups": {}, "lerobot_keys": "",
-    "lerobot_tasks": "", "lerobot_rotate_images": False, "policy_path": ""}
+    "lerobot_tasks": "", "lerobot_rotate_images": False, "policy_path": "", "eval_step_cap": 0}
 
 
 def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:
@@ -261,18 +265,50 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
     cfg.name = experiment_name(cfg.name, profile)
 
 
+LABEL_VALUE_CHARS = 24  # a longer setting value is shown as its start and a hash (short_value)
+LABEL_SETTINGS_CHARS = 80  # settings beyond these characters are folded into one hash
+
+
 def run_label(method: str, setting: str = "") -> str:
     """A run's name in tables, plots and results/<benchmark>/: "consft[kappa=0.1]", or the
-    method's name alone when it runs at its defaults."""
+    method's name alone when it runs at its defaults. Settings past LABEL_SETTINGS_CHARS are
+    folded into their keys and one hash of them all ("+demos_dir,lerobot_tasks@3f2a9c"), so a
+    label stays a readable folder name; the full settings are in the run's params and
+    config.yaml."""
+    if len(setting) > LABEL_SETTINGS_CHARS:
+        kept, folded = [], []
+        for part in setting.split(" "):  # in order, each that still fits; the rest folded
+            fits = len(" ".join(kept + [part])) <= LABEL_SETTINGS_CHARS * 2 // 3
+            (kept if fits else folded).append(part)
+        keys = ",".join(part.split("=", 1)[0] for part in folded)
+        keys = keys if len(keys) <= 40 else f"{len(folded)}more"
+        setting = " ".join(kept + [f"+{keys}@{_digest(setting)}"])
     return f"{method}[{setting}]" if setting else method
 
 
 def setting_text(value: Any) -> str:
-    """A setting's value as a label shows it: 0.0001, a,b for a list, and a user's class given by
-    file path as its class name and a hash of the path (`class_label`)."""
+    """A setting's value as a label shows it: 0.0001, a,b for a list, a user's class given by
+    file path as its class name and a hash of the path (`class_label`), and anything longer than
+    LABEL_VALUE_CHARS shortened (`short_value`)."""
     if isinstance(value, (list, tuple)):
-        return ",".join(map(str, value))
-    return class_label(value) if isinstance(value, str) else str(value)
+        return short_value(",".join(map(str, value)))
+    return short_value(class_label(value) if isinstance(value, str) else str(value))
+
+
+def short_value(text: str) -> str:
+    """`text` itself when short; else its start (a path's last part) and 6 hex digits of a hash
+    of the whole: /data/lerobot/physical-intelligence/libero -> libero@3f2a9c, a list of LIBERO
+    task names -> its first 12 characters and the hash. Two values never share one."""
+    text = str(text)
+    if len(text) <= LABEL_VALUE_CHARS:
+        return text
+    head = text.rstrip("/").rsplit("/", 1)[-1] if "/" in text else text
+    head = "".join(c if c.isalnum() or c in "-_.,:" else "_" for c in head)[:12]
+    return f"{head}@{_digest(text)}"
+
+
+def _digest(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()[:6]
 
 
 def class_label(spec: str) -> str:

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +26,15 @@ from suites import Suite, get_suite
 @dataclass
 class BenchmarkData:
     train: dict[str, TrainingData]  # task -> training samples
-    heldout: dict[str, TrainingData]  # task -> held-out samples (offline retention)
+    heldout: dict[str, TrainingData]  # task -> held-out samples (the held-out loss ratio)
     # task -> {"instruction": [384] embedding, "instruction_tokens": [L] token ids}
     instructions: dict[str, dict[str, np.ndarray]]
+    # task -> training demos it has: demos_per_task, or fewer where demos_dir holds fewer
+    demos_used: dict[str, int] = field(default_factory=dict)
+
+    def short_of_demos(self, wanted: int) -> dict[str, int]:
+        """The tasks that train on fewer than `wanted` (demos_per_task) demos, and how many."""
+        return {t: n for t, n in self.demos_used.items() if n < wanted}
 
     def combined(self, tasks: list[str]) -> TrainingData:
         """The training samples of several tasks together: the foundation's, or a stage's."""
@@ -90,6 +96,7 @@ def prepare_data(cfg: BenchConfig, suite: Suite) -> BenchmarkData:
         data.instructions[task] = {"instruction": embedding, "instruction_tokens": tokens,
                                    "instruction_id": np.int64(index)}
         splits = task_demos(cfg, suite, task)
+        data.demos_used[task] = len(splits["demo"])
         data.train[task] = chunk_episodes(splits["demo"], task, embedding, cfg.chunk_size, tokens,
                                           index)
         data.heldout[task] = chunk_episodes(splits["heldout"], task, embedding, cfg.chunk_size,
@@ -149,9 +156,20 @@ def user_demos(cfg: BenchConfig, suite: Suite, task: str) -> dict[str, list[Epis
     return splits
 
 
+def short_demos_text(cfg: BenchConfig, short: dict[str, int]) -> str:
+    """One line for the tasks that train on fewer demos than demos_per_task: what was used."""
+    counts = sorted(set(short.values()))
+    tasks = ", ".join(list(short)[:4]) + (f" and {len(short) - 4} more" if len(short) > 4 else "")
+    return (f"demos_dir holds fewer demos than demos_per_task={cfg.demos_per_task} plus "
+            f"heldout_demos_per_task={cfg.heldout_demos_per_task} for {len(short)} task(s) "
+            f"({tasks}): they train on {'/'.join(map(str, counts))} demo(s) each "
+            "(recorded as demos_used in config.yaml and MLflow)")
+
+
 def split_demos(items: list, cfg: BenchConfig, where, task: str) -> dict[str, list]:
     """The last `heldout_demos_per_task` are held out, the first `demos_per_task` of the rest
-    train."""
+    train (all of the rest where there are fewer: `BenchmarkData.demos_used` records how many,
+    and the run prints and records them)."""
     held = cfg.heldout_demos_per_task
     if len(items) <= held:
         raise RetainError(f"{where} holds {len(items)} demos of task {task!r}; it needs more than "

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import pickle
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
 
 from harness.common.atomic import atomic_path
+from harness.common.errors import RetainError
 from harness.common.seeding import derive_seed
 from harness.config.benchmark import BenchConfig, stage_name
+from harness.data.datasets import TrainingData
 from harness.data.prepare import BenchmarkData
 from harness.evaluate.rollouts import EvalSettings, Evaluator, heldout_loss
 from methods import Method
@@ -51,7 +55,8 @@ def eval_settings(cfg: BenchConfig) -> EvalSettings:
                         n_action_steps=cfg.n_action_steps, cameras=cfg.cameras,
                         image_size=cfg.image_size, envs_per_task=cfg.eval_envs_per_task,
                         shards=cfg.eval_shards, spatial_episodes=cfg.spatial_episodes,
-                        check_episodes=cfg.check_episodes if cfg.until_success > 0 else 0)
+                        check_episodes=cfg.check_episodes if cfg.until_success > 0 else 0,
+                        step_cap=cfg.eval_step_cap)
 
 
 def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: BenchmarkData, seed: int,
@@ -100,29 +105,79 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
     )
 
 
+class CheckpointError(RetainError):
+    """A checkpoint that holds something other than plain data, or cannot be read."""
+
+
+# What a checkpoint may hold besides tensors, numbers, strings, lists, tuples and dicts (which
+# torch's weights-only unpickler allows by itself): a method's TrainingData (a replay buffer),
+# also under the module name it had before harness/ was grouped into subpackages, so a run saved
+# then still resumes. Nothing else is ever built while loading: a results folder or a cache is
+# shared, and opening a file of it must not run what a pickle names.
+ALLOWED_GLOBALS = [TrainingData, (TrainingData, "harness.datasets.TrainingData")]
+# exact types: a subclass (NumPy's float64 is a float, a namedtuple a tuple) pickles its own class
+_SCALARS = (str, bytes, int, float, bool, complex, type(None), torch.dtype, torch.device,
+            torch.Size)
+
+
 def save_checkpoint(path: Path, payload: dict) -> None:
+    """`payload` written atomically, after checking it holds only what `load_checkpoint` reads
+    back: a method whose state holds another object fails here, naming it, not at its resume."""
+    _check_plain(payload, "checkpoint")
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
 
 
-# Checkpoints pickle some harness classes (a replay buffer is a TrainingData) by module name.
-# These modules moved when harness/ was grouped into subpackages; a run saved before still resumes.
-MOVED_MODULES = {"harness.datasets": "harness.data.datasets", "harness.demos": "harness.data.demos"}
+def _check_plain(value, where: str) -> None:
+    if type(value) in _SCALARS or isinstance(value, torch.Tensor):
+        return
+    if type(value) in (dict, collections.OrderedDict):
+        for key, item in value.items():
+            if type(key) not in (str, int, float, bool, type(None)):
+                raise CheckpointError(f"{where} has a key of type {type(key).__name__}; a "
+                                      "checkpoint's keys are strings or numbers")
+            _check_plain(item, f"{where}[{key!r}]")
+    elif type(value) in (list, tuple):
+        for i, item in enumerate(value):
+            _check_plain(item, f"{where}[{i}]")
+    elif type(value) is TrainingData:
+        for name, item in vars(value).items():
+            _check_plain(item, f"{where}.{name}")
+    else:
+        raise CheckpointError(
+            f"{where} holds a {type(value).__module__}.{type(value).__qualname__}; a checkpoint "
+            "(a method's state_dict too) holds only tensors, numbers, strings, lists, tuples, "
+            "dicts and TrainingData (docs/adding-a-method.md)")
 
 
-class _Unpickler(pickle.Unpickler):
-    def find_class(self, module: str, name: str):
-        return super().find_class(MOVED_MODULES.get(module, module), name)
+def load_checkpoint(path: Path, map_location="cpu") -> dict:
+    """A checkpoint written by `save_checkpoint`, loaded with torch's weights-only unpickler and
+    ALLOWED_GLOBALS: a file that names any other class or function (a crafted pickle, or a
+    checkpoint of an older Retain that pickled more) is refused in one line, and nothing it
+    names is imported or called."""
+    try:
+        with torch.serialization.safe_globals(ALLOWED_GLOBALS):
+            return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as err:
+        raise CheckpointError(f"{path} was not loaded: it holds {_refused(err)}, which a "
+                              f"checkpoint may not (an older Retain pickled more); {REBUILD}"
+                              ) from None
+    except RuntimeError as err:
+        if "PytorchStreamReader" not in str(err) and "zip archive" not in str(err):
+            raise
+        raise CheckpointError(f"{path} is not a readable checkpoint (truncated or not written "
+                              f"by torch.save); {REBUILD}") from None
 
 
-class _pickle_with_moved_modules:  # noqa: N801 - a pickle module, as torch.load takes one
-    Unpickler = _Unpickler
-
-    @staticmethod
-    def load(file, **kwargs):
-        return _Unpickler(file, **kwargs).load()
+REBUILD = "delete it and it is rebuilt (`make clean-cache` deletes the whole cache)"
 
 
-def load_checkpoint(path: Path) -> dict:
-    return torch.load(path, map_location="cpu", weights_only=False,
-                      pickle_module=_pickle_with_moved_modules)
+def _refused(err: Exception) -> str:
+    """What the weights-only unpickler refused, from its many-line message, in a few words."""
+    text = str(err)
+    found = re.search(r"[Uu]nsupported (?:global: )?GLOBAL ([\w.]+)", text)
+    if found:
+        return f"a reference to {found.group(1)}"
+    lines = [line.strip() for line in text.splitlines() if line.strip()
+             and not line.startswith(("Weights only load failed", "Check the documentation"))]
+    return f"an object outside plain data ({lines[0][:160] if lines else type(err).__name__})"

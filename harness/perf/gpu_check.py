@@ -437,7 +437,7 @@ def check_resume(device: torch.device, size: CheckSize, work: Path) -> PartResul
     result.expect(final.exists() and (checkpoints.parent / "metrics.json").exists(),
                   f"no stage_{total}.pt or metrics.json after the rerun")
     if final.exists():
-        places = {t.device.type for t in torch.load(final, weights_only=False)["policy"].values()}
+        places = {t.device.type for t in torch.load(final, weights_only=True)["policy"].values()}
         result.expect(places == {device.type}, f"the checkpointed policy is on {places}, "
                                                f"expected {device.type}")
     settings = " ".join(size.resume_settings)

@@ -27,8 +27,8 @@ from harness.evaluate.stages import (
 from harness.measure.metrics import (
     by_stage,
     core_metrics,
+    heldout_loss_ratio,
     libero_metrics,
-    offline_retention,
     paper_metrics,
     spatial_metrics,
 )
@@ -36,7 +36,7 @@ from harness.measure.updates import paper_sparsity, update_stats
 from harness.protocol.foundation import Foundation, build_policy
 from harness.train.trainer import TrainSettings, train_stage
 from methods import Method, TaskContext
-from methods.base import snapshot
+from methods.base import observed_needs, snapshot
 from suites import Suite
 
 
@@ -49,6 +49,9 @@ class RunResult:
     metrics: dict[str, float]
     tasks: list[str]
     layer_rows: list[dict]
+    # what the method was seen keeping (methods.base.observed_needs): "past data", "reference
+    # copy", whatever its class attributes declare
+    observed_needs: list[str] = dataclasses.field(default_factory=list)
 
     def success_matrix(self) -> np.ndarray:
         return np.array([[s.success[t] for t in self.tasks] for s in self.stages])
@@ -112,6 +115,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     run_key = run_settings_key(cfg, method, foundation.key)
     k = cfg.num_stages
     resumed = _last_finished(checkpoints, k, run_key)
+    observed: list[str] = []
     if resumed is None:  # what a method keeps from stage 0 (a buffer, a Fisher) it takes now
         method.after_task(context(0, "foundation", data.combined(cfg.foundation_tasks)))
     else:
@@ -119,6 +123,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         policy.load_state_dict(saved["policy"])
         method.load_state_dict(saved["method"])
         stages += [StageRecord(**r) for r in saved["records"]]
+        observed = list(saved.get("observed_needs", []))
         if resumed < k:
             print(f"[retain] {label} seed {seed}: resuming after stage {resumed} of {k}", flush=True)
     layer_rows: list[dict] = []
@@ -140,6 +145,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
                            stages[-1], log)
         result = train_stage(context(stage, name, data.combined(tasks)), method, settings,
                              generator(seed, "stage", stage), log, after_step=watch)
+        observed = list(dict.fromkeys(observed + observed_needs(method, policy, tasks)))
         record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, name, method)
         record.train_loss = result.final_loss
         watch.finish(record, result.steps)
@@ -149,14 +155,14 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         stages.append(record)
         save_checkpoint(checkpoints / f"stage_{stage}.pt", {
             "run_key": run_key, "policy": policy.state_dict(), "method": method.state_dict(),
-            "records": [s.as_dict() for s in stages[1:]],
+            "records": [s.as_dict() for s in stages[1:]], "observed_needs": observed,
         })
         if on_stage is not None:
             on_stage(record)
     if not layer_rows:
         _, layer_rows = update_stats(theta0, snapshot(policy))
     tasks = cfg.all_tasks()
-    result = RunResult(label, seed, out, stages, {}, tasks, layer_rows)
+    result = RunResult(label, seed, out, stages, {}, tasks, layer_rows, observed)
     result.metrics = summary_metrics(cfg, result)
     return result
 
@@ -263,7 +269,7 @@ def summary_metrics(cfg: BenchConfig, result: RunResult) -> dict[str, float]:
     groups = [[tasks.index(t) for t in group] for group in cfg.stream_stages()]
     R, F, stream = by_stage(result.success_matrix(), foundation, groups)
     metrics = core_metrics(R, F, stream).as_dict()
-    metrics["offline_retention"] = float(offline_retention(result.heldout_matrix(), foundation)[-1])
+    metrics["heldout_loss_ratio"] = float(heldout_loss_ratio(result.heldout_matrix(), foundation)[-1])
     S = result.spatial_success_matrix()
     if S is not None:
         metrics.update(spatial_metrics(*by_stage(S, foundation, groups)).as_dict())

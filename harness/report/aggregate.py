@@ -46,8 +46,9 @@ METRICS = [
            "mean drop of each stream task from its best earlier stage to the end"),
     Metric("bwt", "BWT", True,
            "mean of R[k, s_i] - R[i, s_i] over i < k; negative when later tasks erase earlier"),
-    Metric("offline_retention", "offline retention (loss ratio)", False,
-           "held-out flow-matching loss on the foundation tasks, stage k over 0"),
+    Metric("heldout_loss_ratio", "held-out loss ratio", False,
+           "held-out flow-matching loss on the foundation tasks, stage k over stage 0 (1: "
+           "unchanged; lower is better; logged as offline_retention before issue 48)"),
     Metric("update_frac_changed_rho0.01", "frac. changed (rho=0.01)", False,
            "fraction of scalars with |delta| > 0.01 RMS of their tensor"),
     Metric("update_hoyer_sparsity", "Hoyer sparsity", True,

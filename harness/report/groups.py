@@ -13,7 +13,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from harness.config.benchmark import NOT_IN_RUN_KEY, QUIET_DEFAULTS, run_label
+from harness.config.benchmark import NOT_IN_RUN_KEY, QUIET_DEFAULTS, run_label, short_value
 from harness.report.runs import RunRecord
 
 # config fields that do not change what a run measures (the run key's exclusions in
@@ -89,7 +89,7 @@ def label_of(run: RunRecord, varying: list[str]) -> str:
     """The sweep point, then the settings that tell this run from others of its method and
     point; " (abstract-only reading)" after an earlier reading of ConSFT."""
     s = settings(run)
-    extra = ",".join(f"{k}={s.get(k, QUIET_DEFAULTS.get(k, '-'))}" for k in varying)
+    extra = ",".join(f"{k}={short_value(s.get(k, QUIET_DEFAULTS.get(k, '-')))}" for k in varying)
     label = run_label(run.method, " ".join(part for part in (run.sweep_point, extra) if part))
     return label + (ABSTRACT_ONLY if abstract_only(run) else "")
 

@@ -32,6 +32,23 @@ def colors(summaries: list[RowSummary]) -> dict[str, tuple]:
     return {s.label: cmap(i % cmap.N) for i, s in enumerate(summaries)}
 
 
+LINESTYLES = ("-", "--", "-.", ":")
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "<", ">")
+
+
+def line_styles(summaries: list[RowSummary]) -> dict[str, dict]:
+    """One line style and one hollow marker per row, fixed like its color: two rows with the
+    same numbers (SFT and ConSFT at one retention) draw one line over the other, and the one
+    below stays visible through the other's dashes and around its differently shaped marker.
+    Rows drawn earlier get larger markers, so a marker on top never hides one beneath."""
+    n = len(summaries)
+    return {s.label: {"linestyle": LINESTYLES[i % len(LINESTYLES)],
+                      "marker": MARKERS[i % len(MARKERS)], "markerfacecolor": "none",
+                      "markersize": 5 + 4 * (n - 1 - i) / max(n - 1, 1),
+                      "markeredgewidth": 1.3}
+            for i, s in enumerate(summaries)}
+
+
 def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -> None:
     """Foundation success after each stage: one line per row, its 95% CI band over seeds."""
     longest = max(summaries, key=lambda s: len(s.stages))  # rows of other stages: the most
@@ -40,11 +57,12 @@ def foundation_curves(path: Path, summaries: list[RowSummary], benchmark: str) -
     tick_w, tick_h = figures.text_size(ticks)
     fig = Figure(figsize=(max(8.0, 3.5 + (tick_w + 0.2) * len(ticks)), 4.0 + tick_h))
     ax = fig.add_subplot()
-    color = colors(summaries)
+    color, style = colors(summaries), line_styles(summaries)
     for s in summaries:  # stages that did not roll the foundation out (NaN) are left out
         evaluated = [(i, c) for i, c in enumerate(s.foundation_by_stage) if c.n]
         x = [i for i, _ in evaluated]
-        ax.plot(x, [c.mean for _, c in evaluated], marker="o", color=color[s.label], label=s.label)
+        ax.plot(x, [c.mean for _, c in evaluated], color=color[s.label], label=s.label,
+                **style[s.label])
         if all(c.has_interval for _, c in evaluated):
             ax.fill_between(x, [c.low for _, c in evaluated], [c.high for _, c in evaluated],
                             color=color[s.label], alpha=0.2)
@@ -336,12 +354,14 @@ def sparsity_progress(path: Path, summaries: list[RowSummary], benchmark: str) -
     rows = [s for s in summaries if "sparsity/eq8" in s.series]
     fig = Figure(figsize=(10, 5))
     ax = fig.add_subplot()
-    color = colors(summaries)
+    color, style = colors(summaries), line_styles(summaries)
     for s in rows:
         series = s.series["sparsity/eq8"]
-        marker = "o" if len(series.step) <= 80 else None
+        marked = len(series.step) <= 80
         for j, (x, mean, low, high) in enumerate(_segments(series)):
-            ax.plot(x, mean, marker=marker, markersize=3, color=color[s.label],
+            ax.plot(x, mean, linestyle=style[s.label]["linestyle"],
+                    marker=style[s.label]["marker"] if marked else None, markersize=4,
+                    markerfacecolor="none", color=color[s.label],
                     label=f"{s.label} ({series.n} seed{'s' * (series.n > 1)})" if j == 0 else None)
             if series.n > 1:
                 ax.fill_between(x, low, high, color=color[s.label], alpha=0.15, linewidth=0)

@@ -20,6 +20,7 @@ import numpy as np
 
 from harness.common.errors import RetainError
 from harness.config.benchmark import stage_name
+from harness.measure.metrics import LEGACY_METRIC_KEYS
 from harness.track.tracking import metric_key, quiet_mlflow, run_commits
 
 PARENT_TAG = "mlflow.parentRunId"
@@ -146,7 +147,7 @@ def _record(client, run) -> RunRecord:
     return RunRecord(
         run_id=run_id, method=tags["method"], seed=int(tags.get("seed", params.get("seed", 0))),
         sweep_point=tags.get("sweep_point", ""), start_time=run.info.start_time,
-        params=dict(params), metrics=dict(run.data.metrics),
+        params=dict(params), metrics=_current_keys(run.data.metrics),
         foundation_tasks=foundation, stream_tasks=stream,
         success=_success_matrix(client, run_id, foundation + stream, k),
         layers=_layer_updates(client, run_id), needs=tags.get("needs", ""),
@@ -155,6 +156,16 @@ def _record(client, run) -> RunRecord:
         series={key: _series(client, run_id, key, params, per_stage["stage_steps"])
                 for key in SERIES_KEYS if key in run.data.metrics},
     )
+
+
+def _current_keys(metrics: dict[str, float]) -> dict[str, float]:
+    """A run's final metrics under today's keys: an old run's `offline_retention` is read as
+    `heldout_loss_ratio` (the same number, renamed), unless it logged both."""
+    out = dict(metrics)
+    for old, new in LEGACY_METRIC_KEYS.items():
+        if old in out:
+            out.setdefault(new, out.pop(old))
+    return out
 
 
 def _task_list(params: dict[str, str], key: str, run_id: str) -> list[str]:

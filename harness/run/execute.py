@@ -20,7 +20,7 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
     """Run the given (seed, variant) jobs of a plan: the data, each of their seeds' foundations,
     then the jobs on the executor. `harness bench` runs all of a plan's; a study (harness.run.study)
     only the ones not finished yet, of several plans on one benchmark merged into one."""
-    from harness.data.prepare import prepare_data
+    from harness.data.prepare import prepare_data, short_demos_text
     from harness.run.executors import (
         available_memory_mb,
         evaluation_worker_mb,
@@ -46,27 +46,34 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
                   "command": command, "seeds": cfg.seed_list()}
     keyed = [(seed, variant, variant_job_key(variant, suite, seed)) for seed, variant in runs]
     seeds = sorted({seed for seed, _ in runs})
+    slots = plan_slots(cfg, len(keyed), worker_mb=evaluation_worker_mb(cfg, suite),
+                       memory_mb=available_memory_mb())
+    usage = CpuUsage.now()
+    start = usage.wall
+    print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
+          f"{len(cfg.stream_tasks)} stream tasks, runs "
+          f"{list(dict.fromkeys(v.label for _, v in runs))}, "
+          f"seeds {seeds}; {len(keyed)} jobs, executor {cfg.executor} "
+          f"({_slots_text(cfg, slots)})", flush=True)
+    for note in (slots.workers_note, slots.memory_note):
+        if note:
+            print(f"[retain] {note}", flush=True)
+    # the data before any run: an error in it (a truncated file, a missing task) is one line
+    # and leaves no FAILED run behind in MLflow
+    make_missing_demos(cfg, suite)
+    data = prepare_data(cfg, suite)
+    print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
+    short = data.short_of_demos(cfg.demos_per_task)
+    if short:
+        print(f"[retain] {short_demos_text(cfg, short)}", flush=True)
+        provenance["demos_used"] = dict(data.demos_used)
     parent = tracker.continue_or_start_run(invocation_key(cfg.name, [k for *_, k in keyed]),
                                            f"{cfg.name}:{cfg.method}", provenance["git_commit"],
                                            tags={"benchmark": cfg.name})
     tracker.log_params(parent, provenance_params(cfg, provenance))
     tracking = Tracking(tracker.uri, parent, provenance)
-    slots = plan_slots(cfg, len(keyed), worker_mb=evaluation_worker_mb(cfg, suite),
-                       memory_mb=available_memory_mb())
-    usage = CpuUsage.now()
-    start = usage.wall
     status, children = "FAILED", []
     try:
-        print(f"[retain] {cfg.name}: {len(cfg.foundation_tasks)} foundation + "
-              f"{len(cfg.stream_tasks)} stream tasks, runs "
-              f"{list(dict.fromkeys(v.label for _, v in runs))}, "
-              f"seeds {seeds}; {len(keyed)} jobs, executor {cfg.executor} "
-              f"({_slots_text(cfg, slots)})", flush=True)
-        if slots.memory_note:
-            print(f"[retain] {slots.memory_note}", flush=True)
-        make_missing_demos(cfg, suite)
-        data = prepare_data(cfg, suite)
-        print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
         earlier = finished_keys(tracker.client, tracker.experiment_id, [k for *_, k in keyed])
         jobs = []
         for seed, variant, key in keyed:

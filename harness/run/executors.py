@@ -10,6 +10,7 @@ worker is lost runs again, and the job continues from its last finished stage.
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import os
 import shutil
 import signal
@@ -58,6 +59,7 @@ class Slots:
     parallel: int
     eval_workers: int
     memory_note: str = ""  # why memory set fewer than the cores would, if it did
+    workers_note: str = ""  # why fewer evaluation workers run than `eval_workers` asked for
 
 
 def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None, worker_mb: float = 0.0,
@@ -71,8 +73,46 @@ def plan_slots(cfg: BenchConfig, n_jobs: int, cores: int | None = None, worker_m
     left at 0 also keep the evaluation workers that hold simulators at once (a job's first
     `eval_shards`; the others get no work) within MEMORY_SHARE of it: on many cores a LIBERO
     benchmark would otherwise build more simulators than the memory holds. A setting given is
-    kept as given."""
+    kept as given, up to the workers that can have work (`useful_workers`): `eval_workers=1000`
+    runs eval_shards workers on the CPU, never 1000 processes (`workers_note` says so)."""
     cores = cores or available_cores()
+    most = useful_workers(cfg, cores)
+    given = cfg.eval_workers
+    if given > most:  # the jobs at once follow the workers that will run, not the number asked
+        cfg = dataclasses.replace(cfg, eval_workers=most)
+    slots = _slots_by_memory(cfg, n_jobs, cores, worker_mb, memory_mb)
+    if slots.eval_workers > most:  # a share of the cores beyond what has work
+        slots = dataclasses.replace(slots, eval_workers=most)
+    if given <= most:
+        return slots
+    why = (f"a policy on the CPU is evaluated in eval_shards={cfg.eval_shards} shards, one per "
+           "worker, so more get no work" if _cpu_policy(cfg) and most == cfg.eval_shards
+           else f"this machine has {cores} cores")
+    return dataclasses.replace(slots, workers_note=(
+        f"{slots.eval_workers} evaluation worker(s) per job, not eval_workers={given}: {why}"))
+
+
+def useful_workers(cfg: BenchConfig, cores: int) -> int:
+    """The most evaluation workers a job can use: a CPU policy's evaluation runs `eval_shards`
+    shards, one per worker (more would get no work); one on an accelerator steps simulators in
+    every worker, as many as this machine's cores (Ray's machines are not this one)."""
+    shards = cfg.eval_shards if _cpu_policy(cfg) else None
+    if cfg.executor == "ray":
+        return shards or max(1, cfg.eval_workers)
+    return max(1, min(cores, shards or cores))
+
+
+def _cpu_policy(cfg: BenchConfig) -> bool:
+    from harness.common.device import resolve_device
+
+    try:
+        return resolve_device(cfg.device).type == "cpu"
+    except USER_ERRORS:
+        return True
+
+
+def _slots_by_memory(cfg: BenchConfig, n_jobs: int, cores: int, worker_mb: float,
+                     memory_mb: float | None) -> Slots:
     by_cores = _slots_by_cores(cfg, n_jobs, cores)
     if cfg.executor == "ray" or memory_mb is None or worker_mb <= 0:
         return by_cores

@@ -184,6 +184,12 @@ def run_job(job: Job, evaluator=None, data=None):
         provenance = {**job.tracking.provenance, "git_commits": tracker.commits(child),
                       "machine": machine()}
         tracker.set_tags(child, {f"retain.machine.{k}": v for k, v in provenance["machine"].items()})
+        unsaid = [n for n in result.observed_needs if n not in method.needs()]
+        if unsaid:  # the class attributes did not say it: the report marks what it kept
+            print(f"[retain] note: {job.label} keeps {' and '.join(_KEPT[n] for n in unsaid)} "
+                  f"but does not set {', '.join(_FLAG[n] for n in unsaid)} = True; its runs "
+                  f"are marked needs: {method.needs(result.observed_needs)}", flush=True)
+            tracker.set_tags(child, {"needs": method.needs(result.observed_needs)})
         paths = write_run_outputs(cfg, result, provenance)
         for path in paths.values():
             tracker.log_artifact(child, path)
@@ -191,6 +197,10 @@ def run_job(job: Job, evaluator=None, data=None):
         return result
     finally:
         tracker.end_run(child, status)
+
+
+_KEPT = {"past data": "samples of earlier tasks", "reference copy": "a copy of the network"}
+_FLAG = {"past data": "uses_past_data", "reference copy": "uses_reference_copy"}
 
 
 def foundation_success(cfg: BenchConfig, record) -> float:
@@ -215,6 +225,8 @@ def stage_metrics(cfg: BenchConfig, record) -> dict[str, float]:
 
 def provenance_params(cfg: BenchConfig, provenance: dict) -> dict:
     """The resolved config, git commit and package versions, as MLflow params."""
+    used = provenance.get("demos_used")  # only where demos_dir held fewer than demos_per_task
     return {**{f"config.{k}": v for k, v in cfg.as_dict().items()},
             "git_commit": provenance["git_commit"],
-            **{f"version.{k}": v for k, v in provenance["versions"].items()}}
+            **{f"version.{k}": v for k, v in provenance["versions"].items()},
+            **({"demos_used": " ".join(f"{t}={n}" for t, n in used.items())} if used else {})}

@@ -84,7 +84,7 @@ def write_run_outputs(cfg: BenchConfig, result, provenance: dict) -> dict[str, P
 
 
 HEADLINE = ["foundation_success_stage0", "retention", "retention_drop", "plasticity",
-            "stream_final_success", "forgetting", "bwt", "offline_retention",
+            "stream_final_success", "forgetting", "bwt", "heldout_loss_ratio",
             "update_frac_changed_rho0.01", "update_relative_l2"]
 
 SPATIAL_HEADLINE = ["spatial_foundation_success_stage0", "spatial_retention", "spatial_plasticity"]

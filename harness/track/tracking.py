@@ -19,6 +19,7 @@ import logging
 import os
 import platform
 import random
+import re
 import subprocess
 import sys
 import time
@@ -119,7 +120,8 @@ def check_reachable(uri: str) -> None:
     except requests.ReadTimeout:
         pass
     except requests.RequestException as exc:
-        raise RetainError(f"tracking server {uri} is unreachable: {_first_line(exc)}") from None
+        raise RetainError(f"tracking server {uri} is unreachable: "
+                          f"{_first_line(_innermost(exc))}") from None
 
 
 def finished_keys(client, experiment_id: str, keys) -> set[str]:
@@ -336,8 +338,31 @@ def _http_retries() -> int:
 
 
 def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return (text.splitlines()[0] if text else type(exc).__name__)[:200]
+    """An error's first line, whole words only ("..." where a very long one is cut), without
+    the object addresses a wrapped error's text carries ("<urllib3... object at 0x7f..>: ")."""
+    text = re.sub(r"<[^<>]* at 0x[0-9a-f]+>:\s*", "", str(exc)).strip()
+    text = " ".join(text.splitlines()[0].split()) if text else type(exc).__name__
+    if len(text) > MAX_REASON:
+        text = text[:MAX_REASON].rsplit(" ", 1)[0] + " ..."
+    return text
+
+
+MAX_REASON = 300
+
+
+def _innermost(exc: BaseException) -> BaseException:
+    """Follow `reason` (urllib3), an exception as the first argument (requests) and
+    `__cause__` down to the error that started it."""
+    seen = {id(exc)}
+    while True:
+        nested = getattr(exc, "reason", None)
+        if not isinstance(nested, BaseException):
+            first = exc.args[0] if exc.args else None
+            nested = first if isinstance(first, BaseException) else exc.__cause__
+        if not isinstance(nested, BaseException) or id(nested) in seen:
+            return exc
+        seen.add(id(nested))
+        exc = nested
 
 
 def metric_key(key: str) -> str:

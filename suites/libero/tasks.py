@@ -12,9 +12,11 @@ Suite order is LIBERO's standard task order (task_order_index 0).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from functools import cache
 
+from suites.base import SuiteError
 from suites.libero.install import point_libero_at_config
 
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
@@ -84,8 +86,32 @@ def suite_tasks(suite: str) -> list[str]:
 
 @cache
 def init_states(task: str):
-    """The task's 50 fixed init states (flattened MuJoCo states), as LIBERO's benchmark loads them."""
+    """The task's 50 fixed init states (flattened MuJoCo states), as LIBERO's benchmark loads them
+    (a torch.save'd NumPy array), but with torch's weights-only unpickler allowing NumPy's array
+    types alone: a file that names anything else is refused, and nothing it names is called."""
+    import pickle
+
     import numpy as np
     import torch
 
-    return np.asarray(torch.load(all_tasks()[task].init_states_file, weights_only=False))
+    path = all_tasks()[task].init_states_file
+    try:
+        with torch.serialization.safe_globals(numpy_array_globals()):
+            return np.asarray(torch.load(path, weights_only=True))
+    except pickle.UnpicklingError as err:
+        found = re.search(r"[Uu]nsupported (?:global: )?GLOBAL ([\w.]+)", str(err))
+        raise SuiteError(f"LIBERO init-state file {path} was not loaded: it holds "
+                         f"{found.group(1) if found else 'an object'}, not a NumPy array; "
+                         "reinstall the libero package (make venv)") from None
+
+
+def numpy_array_globals() -> list:
+    """What a pickled NumPy array names, under NumPy 2's module names and the `numpy.core` ones
+    of the NumPy 1 that wrote LIBERO's files: the array, its dtype (and dtype classes), and the
+    array's rebuild function. Nothing that runs code."""
+    import numpy as np
+    from numpy._core.multiarray import _reconstruct
+
+    dtypes = [type(np.dtype(t)) for t in np.typecodes["All"]]
+    return [np.ndarray, np.dtype, *dtypes, _reconstruct,
+            (_reconstruct, "numpy.core.multiarray._reconstruct")]
