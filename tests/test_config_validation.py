@@ -49,6 +49,7 @@ EXAMPLES: dict[str, st.SearchStrategy] = {
     "stream_tasks": st.lists(st.sampled_from(FULL.stream_tasks), min_size=1, unique=True),
     "grid": st.sampled_from(["", "lr=0.0001,0.0003"]),
     "demos_dir": st.just(""),
+    "policy_path": st.just(""),  # a LeRobot checkpoint folder or hub id: checked by the plan
     "lerobot_keys": st.just(""),  # a LeRobot folder's key and task maps: free text, read with it
     "lerobot_tasks": st.just(""),
     "results_dir": st.just("results"),  # made relative to a fresh folder in the test

@@ -48,3 +48,19 @@ def test_two_workers_give_the_same_results_as_one():
             results[workers] = evaluator.evaluate(policy, TASKS, instructions, noise_seed=3)
     assert results[1] == results[2]
     assert {t: r.steps for t, r in results[1].items()} == {"reach-v3": 40, "push-v3": 40}
+
+
+def test_eval_step_cap_shortens_evaluation_below_a_tasks_own_limit():
+    """LIBERO's tasks have their own limits (220-520 steps), which max_episode_steps does not
+    lower; eval_step_cap does, for evaluation only."""
+    from harness.evaluate.rollouts import evaluation_episodes
+
+    suite = get_suite("libero")
+    task = "pick_up_the_alphabet_soup_and_place_it_in_the_basket"
+    own = evaluation_episodes(suite, [task], 2, 100)
+    assert {e.max_steps for e in own} == {suite.step_limit(task, 100)} and own[0].max_steps > 100
+    capped = evaluation_episodes(suite, [task], 2, 100, "check", step_cap=15)
+    assert [e.max_steps for e in capped] == [15, 15]
+    assert [e.seed for e in capped] == [e.seed for e in evaluation_episodes(suite, [task], 2, 100,
+                                                                             "check")]
+    assert evaluation_episodes(suite, [task], 1, 100, step_cap=10_000)[0].max_steps == own[0].max_steps

@@ -14,9 +14,12 @@ from suites.base import CAMERA_KEYS
 
 
 def test_libero_paper_tiny_with_lerobots_pi0_on_both_cameras(tmp_path):
+    # LIBERO renders its two cameras at about 70 ms a step on a CPU core (Mesa): one demo per
+    # task, one evaluation and check episode, and episodes cut at 15 steps keep it to minutes
     args = ["bench", "BENCH=libero-paper", "PROFILE=tiny", "METHOD=consft",
             "policy=lerobot_pi0", "image_size=32", f"results_dir={tmp_path}/results",
-            f"cache_dir={tmp_path}/cache", "progress=false", "eval_workers=1"]
+            f"cache_dir={tmp_path}/cache", "progress=false", "eval_workers=1",
+            "demos_per_task=1", "eval_episodes=1", "check_episodes=1", "eval_step_cap=15"]
     assert main(args) == 0
     runs = list((tmp_path / "results" / "libero-paper-tiny").glob("consft*/seed0"))
     assert len(runs) == 1

@@ -50,6 +50,7 @@ class EvalSettings:
     shards: int = 2  # interleaved shares of the episodes, each its own lockstep (on the CPU)
     spatial_episodes: int = 0  # per task, of the spatial probe's split (widened initial states)
     check_episodes: int = 0  # per task, of the "check" split: matched-target stopping's own
+    step_cap: int = 0  # an episode's steps at most, below its task's limit (0: the limit alone)
 
     def episodes_of(self, split: str) -> int:
         """Episodes per task of a split: "eval" (the success matrix), "spatial" (the probe) or
@@ -210,9 +211,12 @@ def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndar
 
 
 def evaluation_episodes(suite: Suite, tasks: list[str], n: int, max_episode_steps: int,
-                        split: str = "eval") -> list[EvalEpisode]:
-    return [EvalEpisode(t, key, suite.step_limit(t, max_episode_steps))
-            for t in tasks for key in suite.episode_keys(t, split, n)]
+                        split: str = "eval", step_cap: int = 0) -> list[EvalEpisode]:
+    def limit(task: str) -> int:
+        own = suite.step_limit(task, max_episode_steps)
+        return min(own, step_cap) if step_cap else own
+
+    return [EvalEpisode(t, key, limit(t)) for t in tasks for key in suite.episode_keys(t, split, n)]
 
 
 def shard(episodes: list[EvalEpisode], n: int) -> list[list[EvalEpisode]]:
@@ -328,7 +332,8 @@ class Evaluator:
                  noise_seed: int, split: str = "eval") -> dict[str, TaskEvaluation]:
         """Per task, its episodes of `split`: "eval", "spatial" (the spatial probe) or "check"."""
         episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes_of(split),
-                                       self.settings.max_episode_steps, split)
+                                       self.settings.max_episode_steps, split,
+                                       self.settings.step_cap)
         layout = self.layout(policy)
         on_cpu = policy_device(policy).type == "cpu"
         if layout == "central":

@@ -54,6 +54,7 @@ from policies.lerobot.stats import LeRobotStats
 STATE_FEATURE, ACTION_FEATURE = "observation.state", "action"
 STATE_SPREAD_FLOOR, ACTION_SPREAD_FLOOR = 1e-2, 5e-2  # Retain's normalizer floors
 TOKENIZER_DIR, VLM_DIR = "tokenizer", "vlm"  # a checkpoint's own tokenizer and VLM config
+PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # what LeRobot's PI0 / PI0.5 processors load
 
 
 def default_features(image_keys: tuple[str, ...]) -> dict[str, str]:
@@ -134,6 +135,10 @@ class LeRobotPolicy(nn.Module):
         cls = get_policy_class(self.config.KIND)
         if size is None:  # the published architecture: its VLM config and tokenizer are hub files
             try:
+                if self.config.KIND != "smolvla":  # before 4B parameters are built, not after
+                    from transformers import AutoTokenizer
+
+                    AutoTokenizer.from_pretrained(PALIGEMMA_TOKENIZER)
                 with _quiet():
                     return cls(lr_config), None
             except Exception as exc:
