@@ -33,8 +33,13 @@ def _model():
     from transformers.utils import logging as transformers_logging
 
     transformers_logging.disable_progress_bar()  # a bar for loading 90 MB says nothing
-
-    return SentenceTransformer(str(get_model_path()), device="cpu")
+    level = transformers_logging.get_verbosity()
+    # transformers 5 logs a "LOAD REPORT" table for one buffer the checkpoint carries unused
+    transformers_logging.set_verbosity_error()
+    try:
+        return SentenceTransformer(str(get_model_path()), device="cpu")
+    finally:
+        transformers_logging.set_verbosity(level)
 
 
 def embed_instructions(instructions: list[str], cache_dir: Path | None = None) -> np.ndarray:

@@ -52,6 +52,7 @@ def checkpoint(tmp_path):
     return policy.save_folder(tmp_path / "ckpt")
 
 
+@pytest.mark.slow  # Meta-World's cameras rendered on a CPU: about 3 minutes alone
 def test_a_checkpoint_is_the_foundation_evaluated_never_retrained(checkpoint, tmp_path,
                                                                    monkeypatch):
     import harness.protocol.foundation as foundation
@@ -62,7 +63,8 @@ def test_a_checkpoint_is_the_foundation_evaluated_never_retrained(checkpoint, tm
     monkeypatch.setattr(foundation, "train_stage", fail)
     args = ["bench", "PROFILE=tiny", "METHOD=sft", f"policy_path={checkpoint}",
             "policy=lerobot_pi0", f"results_dir={tmp_path}/results",
-            f"cache_dir={tmp_path}/cache", "progress=false", "eval_workers=1"]
+            f"cache_dir={tmp_path}/cache", "progress=false", "eval_workers=1",
+            "demos_per_task=1", "eval_episodes=1", "eval_step_cap=15"]  # cameras: slow on a CPU
     assert main(args) == 0
     run = next((tmp_path / "results" / "mw-quick-tiny").glob("sft*/seed0"))
     stages = json.loads((run / "metrics.json").read_text())["stages"]

@@ -123,6 +123,15 @@ def saved_pi0(tmp_path_factory, policies):
     return policies["lerobot_pi0"].save_folder(tmp_path_factory.mktemp("pi0") / "ckpt")
 
 
+def linked_without(saved: Path, folder: Path, left_out: str) -> Path:
+    """`folder` holding links to every file of the checkpoint `saved` but `left_out`."""
+    folder.mkdir()
+    for p in saved.iterdir():
+        if p.name != left_out:
+            (folder / p.name).symlink_to(p)
+    return folder
+
+
 def _load(folder):
     features = (("state", "observation.state"),
                 *((k, f"observation.images.{k}") for k in CAMERA_KEYS))
@@ -130,22 +139,14 @@ def _load(folder):
 
 
 def test_a_missing_weights_file_is_one_line_never_a_random_model(saved_pi0, tmp_path):
-    folder = tmp_path / "no-weights"
-    folder.mkdir()
-    for p in saved_pi0.iterdir():
-        if p.name != "model.safetensors":
-            (folder / p.name).symlink_to(p)
+    folder = linked_without(saved_pi0, tmp_path / "no-weights", "model.safetensors")
     with pytest.raises(CheckpointError) as err:
         _load(folder)
     assert "has no model.safetensors" in str(err.value) and "\n" not in str(err.value)
 
 
 def test_weights_that_do_not_fit_are_an_error_not_a_random_model(saved_pi0, tmp_path):
-    folder = tmp_path / "bad-weights"
-    folder.mkdir()
-    for p in saved_pi0.iterdir():
-        if p.name != "model.safetensors":
-            (folder / p.name).symlink_to(p)
+    folder = linked_without(saved_pi0, tmp_path / "bad-weights", "model.safetensors")
     weights = load_file(saved_pi0 / "model.safetensors")
     name = next(k for k in weights if k.endswith("state_proj.weight"))
     weights[name] = torch.zeros(weights[name].shape[0], weights[name].shape[1] + 1)  # wrong shape
@@ -212,11 +213,7 @@ def test_a_checkpoint_that_does_not_fit_the_suite_is_one_line(mw_checkpoint, tmp
         _plan("BENCH=libero-quick", f"policy_path={mw_checkpoint}")
     assert "acts in 4 dimensions; suite 'libero' takes 7" in str(err.value)
     config = json.loads((mw_checkpoint / "config.json").read_text())
-    renamed = tmp_path / "renamed"
-    renamed.mkdir()
-    for p in mw_checkpoint.iterdir():
-        if p.name != "config.json":
-            (renamed / p.name).symlink_to(p)
+    renamed = linked_without(mw_checkpoint, tmp_path / "renamed", "config.json")
     features = config["input_features"]
     features["observation.images.top_view"] = features.pop("observation.images.agentview_rgb")
     (renamed / "config.json").write_text(json.dumps(config))
@@ -250,10 +247,7 @@ def test_lora_adapts_lerobots_own_peft_targets(policies):
 def test_the_checkpoint_folder_identity_is_its_weights(saved_pi0, tmp_path):
     from policies.lerobot.checkpoint import checkpoint_identity
 
-    copy = tmp_path / "copy"
-    copy.mkdir()
-    for p in Path(saved_pi0).iterdir():
-        (copy / p.name).symlink_to(p) if p.name != "model.safetensors" else None
+    copy = linked_without(saved_pi0, tmp_path / "copy", "model.safetensors")
     weights = load_file(saved_pi0 / "model.safetensors")
     save_file(weights, copy / "model.safetensors")
     assert checkpoint_identity(str(copy)) == checkpoint_identity(str(saved_pi0))

@@ -252,6 +252,7 @@ def apply_profile(cfg: BenchConfig, profile: str) -> None:
         cfg.demos_per_task, cfg.heldout_demos_per_task, cfg.eval_episodes = 3, 1, 2
         cfg.spatial_episodes = min(cfg.spatial_episodes, 2)
         cfg.max_episode_steps = min(cfg.max_episode_steps, 100)
+        cfg.eval_step_cap = min(cfg.eval_step_cap or 100, 100)  # LIBERO's own limits too
         cfg.foundation_steps, cfg.steps_per_task, cfg.batch_size = 30, 10, 32
         cfg.policy_size = "tiny"
     elif profile == "paper":
