@@ -14,8 +14,9 @@ from suites.base import CAMERA_KEYS
 
 
 def test_libero_paper_tiny_with_lerobots_pi0_on_both_cameras(tmp_path):
-    # LIBERO renders its two cameras at about 70 ms a step on a CPU core (Mesa): one demo per
-    # task, one evaluation and check episode, and episodes cut at 15 steps keep it to minutes
+    # LIBERO renders its two cameras at about 70 ms a step on a CPU core (Mesa): tiny's two base
+    # and two target tasks with one demo each, one evaluation and check episode, and episodes
+    # cut at 15 steps keep it to a few minutes
     args = ["bench", "BENCH=libero-paper", "PROFILE=tiny", "METHOD=consft",
             "policy=lerobot_pi0", "image_size=32", f"results_dir={tmp_path}/results",
             f"cache_dir={tmp_path}/cache", "progress=false", "eval_workers=1",
@@ -29,10 +30,9 @@ def test_libero_paper_tiny_with_lerobots_pi0_on_both_cameras(tmp_path):
     config = (run / "config.yaml").read_text()
     assert "policy: lerobot_pi0" in config and "cameras: true" in config
     lines = (run / "success_matrix.csv").read_text().splitlines()
-    assert len(lines) == 1 + 2  # stage 0 and the one grouped Spatial stage tiny keeps
+    assert len(lines) == 1 + 2  # a header, stage 0 and the one grouped Spatial stage
     metrics = json.loads((run / "metrics.json").read_text())["metrics"]
-    assert np.isfinite(metrics["offline_retention"] if "offline_retention" in metrics
-                       else metrics["heldout_loss_ratio"])
+    assert np.isfinite(metrics["heldout_loss_ratio"]) and metrics["heldout_loss_ratio"] > 0
     from harness.data.demos import read_demo_file  # the demos carry LIBERO's two cameras
 
     demo = next((tmp_path / "cache" / "demos" / "libero").glob("*.hdf5"))

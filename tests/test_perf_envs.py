@@ -1,4 +1,5 @@
-"""`make bench-envs`: the memory and build time of a benchmark's simulators, one per task."""
+"""`make bench-envs`: the memory and build time of a benchmark's simulators, one per task, and on
+LIBERO the control step's speed on each path beside its physics."""
 
 from __future__ import annotations
 
@@ -22,3 +23,18 @@ def test_bench_envs_command_line_names_an_unknown_benchmark(capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: unknown benchmark 'no-such-bench'; valid: ") and "\n" not in err
     assert "libero-paper" in err
+
+
+def test_bench_envs_on_libero_prints_the_control_step_beside_its_physics(capsys):
+    """On LIBERO the memory line is followed by the first task's control step on each path."""
+    assert main(["envs", "--bench", "libero-spatial", "--tasks", "1", "--steps", "2"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 5 and lines[0].startswith("1 of libero-spatial's libero simulators")
+    assert re.fullmatch(r"control step of \w+ \(2 seeded random steps from init state 0\), "
+                        r"no cameras:", lines[1]), lines[1]
+    rows = [re.fullmatch(r"  (.+?) +([\d.]+) steps/s +([\d.]+)x the physics' time", line)
+            for line in lines[2:]]
+    assert all(rows), lines[2:]
+    assert [row[1] for row in rows] == ["physics alone (mj_step x 25)", "robosuite's env.step",
+                                        "fast path (suites/libero/fast_step.py)"]
+    assert float(rows[0][3]) == 1.0 and all(float(row[2]) > 0 for row in rows)

@@ -396,9 +396,11 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, camer
           "(target >= 1.6x)")
 
 
-def bench_envs(bench: str, n_tasks: int = 0, cameras: bool = False, image_size: int = 128) -> None:
+def bench_envs(bench: str, n_tasks: int = 0, cameras: bool = False, image_size: int = 128,
+               steps: int = 200, camera_steps: int = 20) -> None:
     """Resident memory and build time of a benchmark's simulators, one per task as an evaluation
-    holds them at once (its lockstep batches every task's episodes), in this process."""
+    holds them at once (its lockstep batches every task's episodes), in this process; then, for a
+    suite with two step paths (LIBERO), the control step's speed on each against its physics."""
     from suites import get_suite
 
     benchmark = load_benchmark(bench)
@@ -409,13 +411,104 @@ def bench_envs(bench: str, n_tasks: int = 0, cameras: bool = False, image_size: 
     base, start = _rss_mb(), time.perf_counter()
     envs += [suite.make_env(task, cameras, image_size) for task in tasks[1:]]
     seconds, total = time.perf_counter() - start, _rss_mb()
+    two_paths = hasattr(envs[0], "fast_step")
     for env in envs:
         env.close()
     more = max(1, len(tasks) - 1)
     images = f"two {image_size}x{image_size} cameras" if cameras else "no cameras"
     print(f"{len(tasks)} of {bench}'s {benchmark.suite} simulators in one process, {images}: "
           f"{total / 1024:.1f} GB resident; {(total - base) / more:.0f} MB and "
-          f"{seconds / more:.1f} s to build each after the first")
+          f"{seconds / more:.1f} s to build each after the first", flush=True)
+    if two_paths and steps > 0:
+        for with_cameras, n in [(False, steps)] + ([(True, camera_steps)] if cameras else []):
+            env = suite.make_env(tasks[0], with_cameras, image_size)
+            try:
+                print_step_speeds(tasks[0], *step_speeds(env, n), with_cameras, image_size, n)
+            finally:
+                env.close()
+
+
+STEP_PATHS = {"physics": "physics alone (mj_step x {substeps})",
+              "robosuite": "robosuite's env.step",
+              "fast": "fast path (suites/libero/fast_step.py)"}
+
+
+def step_speeds(env, steps: int, key: int = 0, seed: int = 0,
+                repeats: int = 3) -> tuple[dict[str, float], int]:
+    """Control steps per second of one seeded random episode from init state `key`: through
+    robosuite's `env.step`, through the fast path, and its physics alone: the same episode's
+    per-substep controls replayed with `mj_step` (both paths give it to the bit), with the
+    cameras rendered once per control step as the observations render them. Timed in the
+    process's CPU time, the best of `repeats` interleaved runs each: a shared machine's load only
+    ever slows a run down. Also returns the physics substeps per control step."""
+    import numpy as np
+
+    actions = np.random.default_rng(seed).uniform(-1, 1, (steps, 7))
+    controls = _recorded_controls(env, actions, key)
+    speeds = dict.fromkeys(STEP_PATHS, 0.0)
+    for _ in range(repeats):
+        speeds["physics"] = max(speeds["physics"], _replayed(env, controls, steps, key))
+        for path, fast in (("robosuite", False), ("fast", True)):
+            env.fast_step = fast
+            env.reset(key)
+            start = time.process_time()
+            for action in actions:
+                env.step(action)
+            speeds[path] = max(speeds[path], steps / (time.process_time() - start))
+    return speeds, len(controls) // steps
+
+
+def _recorded_controls(env, actions, key: int) -> list:
+    """Each substep's data.ctrl as robosuite's path sets it before `mj_step2` (not timed)."""
+    env.fast_step = False
+    env.reset(key)
+    sim, controls = env.env.sim, []
+    step2 = sim.step2
+
+    def recording() -> None:
+        controls.append(sim.data.ctrl.copy())
+        step2()
+
+    sim.step2 = recording
+    try:
+        for action in actions:
+            env.step(action)
+    finally:
+        del sim.step2  # the class's method again
+    return controls
+
+
+def _replayed(env, controls: list, steps: int, key: int) -> float:
+    import mujoco
+
+    env.fast_step = False
+    env.reset(key)
+    sim = env.env.sim
+    model, data = sim.model._model, sim.data._data
+    raw = env.env.env
+    cameras = list(zip(raw.camera_names, raw.camera_widths, raw.camera_heights, strict=True))
+    cameras = cameras if raw.use_camera_obs else []
+    substeps = len(controls) // steps
+    start = time.process_time()
+    for i, ctrl in enumerate(controls):
+        data.ctrl[:] = ctrl
+        mujoco.mj_step(model, data)
+        if (i + 1) % substeps == 0:
+            for camera, width, height in cameras:
+                sim.render(width=width, height=height, camera_name=camera)
+    return steps / (time.process_time() - start)
+
+
+def print_step_speeds(task: str, speeds: dict[str, float], substeps: int, cameras: bool,
+                      image_size: int, steps: int) -> None:
+    images = f"two {image_size}x{image_size} cameras" if cameras else "no cameras"
+    render = " + 2 renders" if cameras else ""
+    print(f"control step of {task} ({steps} seeded random steps from init state 0), {images}:")
+    physics = speeds["physics"]
+    for path, label in STEP_PATHS.items():
+        label = label.format(substeps=substeps) + (render if path == "physics" else "")
+        print(f"  {label:<44} {speeds[path]:7.1f} steps/s  {physics / speeds[path]:5.2f}x "
+              f"the physics' time")
 
 
 def policy_device_name(policy) -> str:
@@ -447,6 +540,9 @@ def _envs_args(argv: list[str]):
     parser.add_argument("--tasks", type=int, default=0, help="its first N tasks (0: all)")
     parser.add_argument("--cameras", action="store_true", help="with both cameras' renderers")
     parser.add_argument("--image-size", type=int, default=128)
+    parser.add_argument("--steps", type=int, default=200,
+                        help="control steps timed per path, no cameras (0: skip the step speeds)")
+    parser.add_argument("--camera-steps", type=int, default=20, help="the same, with cameras")
     return parser.parse_args(argv)
 
 
@@ -477,7 +573,8 @@ def main(argv: list[str]) -> int:
     elif what == "envs":
         args = _envs_args(argv[1:])
         try:
-            bench_envs(args.bench, args.tasks, args.cameras, args.image_size)
+            bench_envs(args.bench, args.tasks, args.cameras, args.image_size, args.steps,
+                       args.camera_steps)
         except RetainError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
@@ -486,7 +583,8 @@ def main(argv: list[str]) -> int:
     else:
         print("usage: python -m harness.perf.throughput {train [device=cuda compile=true],methods,eval "
               "[workers] [--cameras] [--image-size N] [--episodes N] [--max-steps N] [--device D] "
-              "[--layout L],envs [--bench B] [--tasks N] [--cameras] [--image-size N]}",
+              "[--layout L],envs [--bench B] [--tasks N] [--cameras] [--image-size N] [--steps N] "
+              "[--camera-steps N]}",
               file=sys.stderr)
         return 2
     return 0

@@ -15,6 +15,10 @@ Episodes (`reset(key)`):
 Either way SETTLE_STEPS no-op steps follow (gripper open) while objects settle; they are not
 part of the episode, as in LIBERO's evaluations.
 
+Steps go through `fast_step.FastStepper` (robosuite's control step to the bit, two to three
+times as fast) unless `fast_step=False` or the environment variable RETAIN_LIBERO_FAST_STEP=0
+asks for robosuite's own `env.step`.
+
 State layout (STATE_DIM = 65, one layout per task, zeros in unused object slots):
   [0:3]  end-effector position (world, m)   [3:7] end-effector quaternion (xyzw)
   [7:9]  gripper finger joint positions
@@ -26,12 +30,15 @@ dataset files store them: robosuite's renders unflipped (OpenGL convention, bott
 
 from __future__ import annotations
 
+import logging
+import os
 from xml.etree import ElementTree
 
 import numpy as np
 
 import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
 from suites.base import Observation, StepResult, SuiteError, TaskEnv, is_spatial
+from suites.libero.fast_step import FastStepper, Unsupported
 from suites.libero.install import ensure_installed
 from suites.libero.tasks import (
     MAX_OBJECTS,
@@ -58,6 +65,18 @@ CAMERAS = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "robot0_eye_in_hand"
 # from any other: issue 15's libero-broad foundation succeeded from 2-9 of 10 demo starts and
 # 0-2 of 10 init states on the same tasks.
 ROBOT_INIT_NOISE = "default"
+# Set to 0 (or false/no/off) to step every LIBERO env through robosuite's own `env.step`.
+FAST_STEP_ENV = "RETAIN_LIBERO_FAST_STEP"
+RAW_KEYS = ("robot0_joint_pos", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+
+log = logging.getLogger(__name__)
+
+
+def fast_step_default() -> bool:
+    """The fast path unless RETAIN_LIBERO_FAST_STEP turns it off: an environment variable rather
+    than a benchmark setting, since both paths give the same episodes to the bit (a setting would
+    split run labels and caches over a speed choice), and it reaches every worker process."""
+    return os.environ.get(FAST_STEP_ENV, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
 def patch_floor_mount() -> None:
@@ -124,8 +143,11 @@ class NoExpert(SuiteError):
 
 
 class LiberoTaskEnv(TaskEnv):
-    def __init__(self, task: LiberoTask, cameras: bool = False, image_size: int = 128):
+    def __init__(self, task: LiberoTask, cameras: bool = False, image_size: int = 128,
+                 fast_step: bool | None = None):
         self.task, self.cameras = task, cameras
+        self.fast_step = fast_step_default() if fast_step is None else fast_step
+        self._stepper: FastStepper | None = None
         self.env = make_raw_env(task, cameras, image_size)  # the raw LIBERO env experts get
         self.objects = [obj.name for obj in self.env.env.objects]  # BDDL order: fixed per task
         if len(self.objects) > MAX_OBJECTS:
@@ -139,7 +161,7 @@ class LiberoTaskEnv(TaskEnv):
     def reset(self, key: int) -> Observation:
         self.start(int(key))
         for _ in range(SETTLE_STEPS):
-            self.raw_obs, *_ = self.env.step(NOOP)
+            self.raw_obs, _ = self._raw_step(NOOP)
         self.expert, self.expert_error = None, ""  # made at the episode's first expert_action
         return self._observation(self.raw_obs)
 
@@ -180,8 +202,9 @@ class LiberoTaskEnv(TaskEnv):
 
     def step(self, action: np.ndarray) -> StepResult:
         action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
-        self.raw_obs, *_ = self.env.step(action)
-        return StepResult(self._observation(self.raw_obs), self.success())
+        self.raw_obs, success = self._raw_step(action)
+        return StepResult(self._observation(self.raw_obs),
+                          self.success() if success is None else success)
 
     def success(self) -> bool:
         """LIBERO's BDDL goal."""
@@ -214,6 +237,35 @@ class LiberoTaskEnv(TaskEnv):
         self.env.close()
 
     # --- helpers -------------------------------------------------------------------------------
+    def raw_keys(self) -> list[str]:
+        """The raw observations this env reads (state(), demo_extras(), the proprio suite's
+        state, the cameras): the fast path samples these and no other."""
+        keys = list(RAW_KEYS) + [f"{name}_{part}" for name in self.objects
+                                 for part in ("pos", "quat")]
+        return keys + ([f"{camera}_image" for camera in CAMERAS.values()] if self.cameras else [])
+
+    def _raw_step(self, action: np.ndarray) -> tuple[dict, bool | None]:
+        """One control step: (raw observations, BDDL success, or None where not yet known)."""
+        stepper = self._fast_stepper()
+        if stepper is None:
+            raw, *_ = self.env.step(action)
+            return raw, None
+        return stepper.step(action)
+
+    def _fast_stepper(self) -> FastStepper | None:
+        """The fast path bound to the env's current sim and controllers (a reset may replace
+        them), or None for robosuite's own step."""
+        if not self.fast_step:
+            return None
+        raw_env = self.env.env
+        if self._stepper is None or not self._stepper.bound_to(raw_env):
+            try:
+                self._stepper = FastStepper(raw_env, self.raw_keys())
+            except Unsupported as err:
+                log.warning("LIBERO task %s: robosuite's own step (%s)", self.task.name, err)
+                self.fast_step, self._stepper = False, None
+        return self._stepper
+
     def sim_state(self) -> np.ndarray:
         """The flattened MuJoCo state, LIBERO's `states` (and init-state) format."""
         return np.asarray(self.env.get_sim_state())
