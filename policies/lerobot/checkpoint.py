@@ -29,6 +29,12 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be used; the message is one line."""
 
 
+def first_line(exc: BaseException) -> str:
+    """An exception's message cut to its first line: every error here is one line."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else ""
+
+
 def hub_offline() -> bool:
     return os.environ.get("HF_HUB_OFFLINE", "").lower() in ("1", "true", "yes", "on")
 
@@ -54,7 +60,7 @@ def checkpoint_folder(path: str) -> Path:
     try:
         return Path(snapshot_download(path))
     except Exception as exc:  # no network, unknown repo, gated repo: one line either way
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        reason = first_line(exc) or type(exc).__name__
         raise CheckpointError(f"policy_path {path!r}: the hub could not give it "
                               f"({type(exc).__name__}: {reason})") from None
 
@@ -97,7 +103,7 @@ def read_config(folder: Path):
             return PreTrainedConfig.from_pretrained(folder)
     except Exception as exc:
         raise CheckpointError(f"checkpoint {folder}: its {CONFIG_FILE} does not parse "
-                              f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+                              f"({type(exc).__name__}: {first_line(exc)})"
                               ) from None
 
 

@@ -33,6 +33,7 @@ from policies.lerobot.checkpoint import (
     CheckpointError,
     check_loaded,
     checkpoint_folder,
+    first_line,
     hub_offline,
     read_config,
 )
@@ -179,7 +180,7 @@ class LeRobotPolicy(nn.Module):
             raise
         except Exception as exc:
             raise CheckpointError(f"checkpoint {folder} did not load: {type(exc).__name__}: "
-                                  f"{_first_line(exc)}") from None
+                                  f"{first_line(exc)}") from None
         return model, tokenizer
 
     def _make_processors(self):
@@ -205,7 +206,7 @@ class LeRobotPolicy(nn.Module):
         except Exception as exc:
             if self.config.path:
                 raise CheckpointError(f"checkpoint {self.config.path!r}: its processors did not "
-                                      f"load ({type(exc).__name__}: {_first_line(exc)})") from None
+                                      f"load ({type(exc).__name__}: {first_line(exc)})") from None
             if self.config.SIZES[self.config.size] is None:
                 raise _hub_error(self.config, exc) from None
             raise
@@ -420,14 +421,9 @@ def _quiet():
         logging.disable(logging.NOTSET)
 
 
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else ""
-
-
 def _hub_error(config: LeRobotConfig, exc: BaseException) -> CheckpointError:
     where = ("the hub is off (HF_HUB_OFFLINE=1)" if hub_offline()
-             else f"{type(exc).__name__}: {_first_line(exc)}")
+             else f"{type(exc).__name__}: {first_line(exc)}")
     return CheckpointError(
         f"lerobot_{config.KIND} at policy_size={config.size} needs files from the hub "
         f"(its VLM config or tokenizer), and {where}; use policy_size=tiny or small, or a local "
