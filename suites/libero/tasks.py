@@ -48,11 +48,12 @@ class LiberoTask:
 
 
 def _benchmark(suite: str):
+    import suites.robosuite_quiet  # noqa: F401  (LIBERO's benchmark imports robosuite)
+
     point_libero_at_config()
     import contextlib
     import io
 
-    import suites.robosuite_quiet  # noqa: F401  (LIBERO's benchmark imports robosuite)
     from libero.libero.benchmark import get_benchmark_dict
 
     with contextlib.redirect_stdout(io.StringIO()):  # it prints "[info] using task orders ..."
