@@ -48,8 +48,6 @@ class LiberoTask:
 
 
 def _benchmark(suite: str):
-    import suites.robosuite_quiet  # noqa: F401  (LIBERO's benchmark imports robosuite)
-
     point_libero_at_config()
     import contextlib
     import io

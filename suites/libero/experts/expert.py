@@ -7,6 +7,10 @@ when the carried object slips or the plan ends without the goal holding.
 from __future__ import annotations
 
 import numpy as np
+
+import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
+
+# isort: split
 from robosuite.utils.control_utils import orientation_error
 
 from suites.libero.experts.planner import plan_goal
