@@ -5,6 +5,7 @@ import json
 import os
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -27,31 +28,33 @@ class ScriptedChecks:
     """An evaluator whose "check" split returns a fixed sequence of success rates: the stopping
     rule's own test (the rollouts themselves are tested in test_evaluation.py)."""
 
-    def __init__(self, rates):
-        self.rates, self.splits = list(rates), []
+    def __init__(self, rates, episodes=10):
+        self.rates, self.splits, self.n = list(rates), [], episodes
 
     def evaluate(self, policy, tasks, instructions, noise_seed, split="eval"):
+        """A rate per check, or a list of per-task successes (out of `episodes`) per check."""
         self.splits.append(split)
         rate = self.rates.pop(0)
-        n = 10
-        return {t: TaskEvaluation(t, tuple(i < rate * n for i in range(n)), 0) for t in tasks}
+        wins = rate if isinstance(rate, list) else [round(rate * self.n)] * len(tasks)
+        return {t: TaskEvaluation(t, tuple(i < k for i in range(self.n)), 0)
+                for t, k in zip(tasks, wins)}
 
 
-def _watch_run(rates, until=0.9, check_every=4, budget=20):
-    cfg = BenchConfig("b", "metaworld", ["f"], ["s"], steps_per_task=budget, until_success=until,
-                      check_every=check_every)
+def _watch_run(rates, until=0.9, check_every=4, budget=20, tasks=("s",), episodes=10):
+    cfg = BenchConfig("b", "metaworld", ["f"], list(tasks), steps_per_task=budget,
+                      until_success=until, check_every=check_every, stage_sizes=[len(tasks)])
     policy = _policy("tiny")
     theta0 = snapshot(policy)
-    before = StageRecord(0, "foundation", {"s": 0.0}, {}, {})
-    evaluator = ScriptedChecks(rates)
+    before = StageRecord(0, "foundation", dict.fromkeys(tasks, 0.0), {}, {})
+    evaluator = ScriptedChecks(rates, episodes)
     logged = []
     data = BenchmarkData({}, {}, {"s": {}})
-    watch = StageWatch(cfg, policy, Method(), evaluator, data, 0, ["s"], theta0, before,
+    watch = StageWatch(cfg, policy, Method(), evaluator, data, 0, list(tasks), theta0, before,
                        lambda step, m: logged.append((step, m)))
     ctx = TaskContext(1, "s", synthetic_data(256, 0), policy, 0.05, budget)
     result = train_stage(ctx, Method(), TrainSettings(budget, 16, 1e-3), torch.Generator(),
                          after_step=watch)
-    record = StageRecord(1, "s", {"s": 1.0}, {}, {})
+    record = StageRecord(1, "s", dict.fromkeys(tasks, 1.0), {}, {})
     watch.finish(record, result.steps)
     return result, record, evaluator, logged
 
@@ -62,6 +65,19 @@ def test_a_stage_stops_at_the_first_check_that_reaches_the_threshold():
     assert record.check_steps == [4, 8, 12] and record.check_success == [0.2, 0.8, 0.9]
     assert evaluator.splits == ["check"] * 3  # never the evaluation episodes
     assert [m["check/success"] for _, m in logged if "check/success" in m] == [0.2, 0.8, 0.9]
+
+
+def test_a_check_at_the_threshold_stops_whatever_the_rounding_of_its_mean():
+    # libero-paper's check: ten tasks, three episodes each; 27 of 30 is a mean of 0.8999999999999998
+    tasks = [f"t{i}" for i in range(10)]
+    wins = [1, 3, 3, 3, 3, 3, 3, 3, 3, 2]
+    assert float(np.mean([k / 3 for k in wins])) < 0.9
+    result, record, _, _ = _watch_run([[2] * 10, wins, [3] * 10], tasks=tasks, episodes=3)
+    assert result.steps == 8 and record.check_steps == [4, 8]
+    # one episode short of the threshold still trains on
+    result, record, _, _ = _watch_run([[2] * 10, [3] * 6 + [2] * 4, [3] * 10], tasks=tasks,
+                                      episodes=3)
+    assert result.steps == 12 and record.check_steps == [4, 8, 12]
 
 
 def test_a_stage_that_never_reaches_the_threshold_uses_its_budget():
