@@ -99,8 +99,9 @@ class Suite(ABC):
             raise unknown(f"{self.name} task", task, self.task_names())
         return task
 
-    def version(self) -> str:
-        """Part of the demo-cache key: bump when observations, experts or success change."""
+    def version(self, task: str) -> str:
+        """Part of a task's demo-cache key: bump when its observations, expert or success change
+        (a suite may bump the tasks a change touched, and keep the others' demos)."""
         return "1"
 
     spatial_probe_version: str = ""

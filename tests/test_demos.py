@@ -68,7 +68,7 @@ def test_generation_is_cached_and_reused(tmp_path, monkeypatch):
     from suites import get_suite
 
     suite = get_suite("metaworld")
-    spec = DemoSpec(suite="metaworld", suite_version=suite.version(), task="reach-v3", split="demo",
+    spec = DemoSpec(suite="metaworld", suite_version=suite.version("reach-v3"), task="reach-v3", split="demo",
                     num_demos=2, max_episode_steps=150)
     first = load_or_generate(suite, spec, tmp_path, progress=False)
     assert len(first) == 2 and all(len(e) > 5 for e in first)
@@ -88,7 +88,7 @@ def test_same_seed_same_demos(tmp_path):
     from suites import get_suite
 
     suite = get_suite("metaworld")
-    spec = DemoSpec(suite="metaworld", suite_version=suite.version(), task="push-v3", split="demo",
+    spec = DemoSpec(suite="metaworld", suite_version=suite.version("push-v3"), task="push-v3", split="demo",
                     num_demos=1, max_episode_steps=150)
     a, b = generate_demos(suite, spec, progress=False), generate_demos(suite, spec, progress=False)
     np.testing.assert_array_equal(a[0].obs["state"], b[0].obs["state"])

@@ -43,7 +43,7 @@ class BenchmarkData:
 
 def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec:
     n = cfg.demos_per_task if split == "demo" else cfg.heldout_demos_per_task
-    return DemoSpec(suite=suite.name, suite_version=suite.version(), task=task, split=split,
+    return DemoSpec(suite=suite.name, suite_version=suite.version(task), task=task, split=split,
                     num_demos=n, max_episode_steps=suite.step_limit(task, cfg.max_episode_steps),
                     cameras=cfg.cameras, image_size=cfg.image_size,
                     source=user_file(cfg, suite, task) if cfg.demos_dir else "")

@@ -4,11 +4,11 @@ Episodes (`reset(key)`):
   key < FRESH_PLACEMENT  LIBERO's fixed init state `key mod 50` from the task's init file, set
                          after a reset as LIBERO's evaluation does (evaluation episode i uses i);
                          the reset's fixture placement is seeded by the key, as below.
-  key >= FRESH_PLACEMENT a fresh scene from LIBERO's own placement sampler in a reloaded
-                         model, its arm joints moved by robosuite's default initialization
-                         noise, both seeded by the key (demo and held-out episodes: the
-                         distribution LIBERO drew its init states from, but never one of the
-                         50 evaluation states).
+  key >= FRESH_PLACEMENT a fresh scene from LIBERO's own placement sampler, as a freshly
+                         loaded model places it, its arm joints moved by robosuite's default
+                         initialization noise, both seeded by the key (demo and held-out
+                         episodes: the distribution LIBERO drew its init states from, but never
+                         one of the 50 evaluation states).
   key >= SPATIAL_KEYS    the spatial probe: fixed init state `key & 63` with every object that
                          rests on the table or floor moved by a seeded 3-6 cm offset in a
                          random direction, to beyond its demo range (`spatial_state`).
@@ -144,9 +144,13 @@ class NoExpert(SuiteError):
 
 class LiberoTaskEnv(TaskEnv):
     def __init__(self, task: LiberoTask, cameras: bool = False, image_size: int = 128,
-                 fast_step: bool | None = None):
+                 fast_step: bool | None = None, reload_fresh_scenes: bool = False):
         self.task, self.cameras = task, cameras
         self.fast_step = fast_step_default() if fast_step is None else fast_step
+        # a fresh scene by robosuite's reload (about 1.5 s) instead of a reset in place (about
+        # 10 ms): the reference tests/test_suite_libero.py holds the reset in place to
+        self.reload_fresh_scenes = reload_fresh_scenes
+        self._loaded_poses: tuple[np.ndarray, np.ndarray] | None = None
         self._stepper: FastStepper | None = None
         self.env = make_raw_env(task, cameras, image_size)  # the raw LIBERO env experts get
         self.objects = [obj.name for obj in self.env.env.objects]  # BDDL order: fixed per task
@@ -174,12 +178,8 @@ class LiberoTaskEnv(TaskEnv):
         # that starts in its drawer). A spatial episode's fixtures are its init state's.
         seed = key & ((1 << INIT_INDEX_BITS) - 1) if is_spatial(key) else key
         fresh = key >= FRESH_PLACEMENT and not is_spatial(key)
-        # LIBERO places an object that starts on a fixture (a bowl on the microwave) from the
-        # fixture's site as a freshly loaded model has it; after a reset in place the site has
-        # moved and the object lands 0.3-0.9 m off, in mid-air. So a fresh scene reloads the model
-        # (about 1.5 s), as LIBERO's own resets did when it drew its init states; an init
-        # state sets every object itself and keeps the cheap reset.
-        self.env.env.hard_reset = fresh
+        if fresh:
+            self._as_loaded()
         self.env.env.rng = np.random.default_rng(seed)  # robosuite draws the arm's noise from it
         saved = np.random.get_state()
         np.random.seed(seed % (1 << 32))
@@ -187,6 +187,7 @@ class LiberoTaskEnv(TaskEnv):
             self.env.reset()
         finally:
             np.random.set_state(saved)
+            self.env.env.hard_reset = False
         if is_spatial(key):
             state = self.spatial_state(key)
         elif key < FRESH_PLACEMENT:
@@ -199,6 +200,34 @@ class LiberoTaskEnv(TaskEnv):
         data.qacc_warmstart[:] = 0
         data.ctrl[:] = 0
         self.raw_obs = self.env.set_init_state(state)
+
+    def _as_loaded(self) -> None:
+        """Make the next reset place a fresh scene as a freshly loaded model would.
+
+        LIBERO's reset moves a fixture (a cabinet, a stove) by writing its body's pose into the
+        model, and places an object that starts on a fixture (a bowl in a drawer) from the
+        fixture's site as the model has it: after a reset in place the site has moved and the
+        object lands 0.3-0.9 m off, in mid-air. So the bodies get back the poses the model was
+        loaded with (compiled once from the env's XML), which makes the reset in place give a
+        reload's scene to the bit. The reload itself (`reload_fresh_scenes`) also clears
+        LIBERO's property samplers (a drawer's open/close, a stove's on/off), which its model
+        loader appends to at every reload without clearing: each reload added a draw from
+        numpy's global RNG, so a key's scene depended on how many reloads the env had made."""
+        raw = self.env.env
+        if self.reload_fresh_scenes:
+            raw.object_property_initializers.clear()
+            raw.hard_reset = True
+            return
+        if self._loaded_poses is None:
+            import mujoco
+
+            xml = raw.model.get_xml()
+            for process in raw._xml_processors:  # as robosuite's _initialize_sim applies them
+                xml = process(xml)
+            loaded = mujoco.MjModel.from_xml_string(xml)
+            self._loaded_poses = (loaded.body_pos.copy(), loaded.body_quat.copy())
+        model = raw.sim.model._model
+        model.body_pos[:], model.body_quat[:] = self._loaded_poses
 
     def step(self, action: np.ndarray) -> StepResult:
         action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)

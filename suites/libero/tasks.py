@@ -79,6 +79,18 @@ def all_tasks() -> dict[str, LiberoTask]:
     return out
 
 
+@cache
+def sets_joints_at_reset(task: str) -> bool:
+    """Whether the task's BDDL starts an articulated object in a state (a drawer open, a stove
+    on): LIBERO draws those joints at every reset (its property samplers), from numpy's global
+    RNG before the placements."""
+    from libero.libero.envs.bddl_utils import robosuite_parse_problem
+
+    problem = robosuite_parse_problem(all_tasks()[task].bddl_file)
+    return any(state[0] in ("open", "close", "turnon", "turnoff")
+               for state in problem["initial_state"])
+
+
 def suite_tasks(suite: str) -> list[str]:
     """One suite's task names in LIBERO's standard order."""
     return [t.name for t in all_tasks().values() if t.suite == suite]
