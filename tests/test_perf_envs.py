@@ -26,15 +26,20 @@ def test_bench_envs_command_line_names_an_unknown_benchmark(capsys):
 
 
 def test_bench_envs_on_libero_prints_the_control_step_beside_its_physics(capsys):
-    """On LIBERO the memory line is followed by the first task's control step on each path."""
-    assert main(["envs", "--bench", "libero-spatial", "--tasks", "1", "--steps", "2"]) == 0
+    """On LIBERO the memory line is followed by the first task's control step on each path,
+    then a fresh scene's reset both ways."""
+    assert main(["envs", "--bench", "libero-spatial", "--tasks", "1", "--steps", "2",
+                 "--resets", "1"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 5 and lines[0].startswith("1 of libero-spatial's libero simulators")
+    assert len(lines) == 6 and lines[0].startswith("1 of libero-spatial's libero simulators")
     assert re.fullmatch(r"control step of \w+ \(2 seeded random steps from init state 0\), "
                         r"no cameras:", lines[1]), lines[1]
     rows = [re.fullmatch(r"  (.+?) +([\d.]+) steps/s +([\d.]+)x the physics' time", line)
-            for line in lines[2:]]
-    assert all(rows), lines[2:]
+            for line in lines[2:5]]
+    assert all(rows), lines[2:5]
     assert [row[1] for row in rows] == ["physics alone (mj_step x 25)", "robosuite's env.step",
                                         "fast path (suites/libero/fast_step.py)"]
     assert float(rows[0][3]) == 1.0 and all(float(row[2]) > 0 for row in rows)
+    resets = re.fullmatch(r"  a fresh scene's reset \(1 demo keys\): robosuite's reload (\d+) ms, "
+                          r"in place (\d+) ms", lines[5])
+    assert resets and int(resets[1]) > 0, lines[5]

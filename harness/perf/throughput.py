@@ -397,7 +397,7 @@ def bench_eval(workers: int = 2, episodes: int = 10, max_steps: int = 200, camer
 
 
 def bench_envs(bench: str, n_tasks: int = 0, cameras: bool = False, image_size: int = 128,
-               steps: int = 200, camera_steps: int = 20) -> None:
+               steps: int = 200, camera_steps: int = 20, resets: int = 10) -> None:
     """Resident memory and build time of a benchmark's simulators, one per task as an evaluation
     holds them at once (its lockstep batches every task's episodes), in this process; then, for a
     suite with two step paths (LIBERO), the control step's speed on each against its physics."""
@@ -424,8 +424,25 @@ def bench_envs(bench: str, n_tasks: int = 0, cameras: bool = False, image_size: 
             env = suite.make_env(tasks[0], with_cameras, image_size)
             try:
                 print_step_speeds(tasks[0], *step_speeds(env, n), with_cameras, image_size, n)
+                if not with_cameras and resets > 0:
+                    keys = suite.episode_keys(tasks[0], "demo", resets)
+                    reload, in_place = (fresh_scene_ms(env, keys, r) for r in (True, False))
+                    print(f"  a fresh scene's reset ({len(keys)} demo keys): robosuite's reload "
+                          f"{reload:.0f} ms, in place {in_place:.0f} ms")
             finally:
                 env.close()
+
+
+def fresh_scene_ms(env, keys: list[int], reload: bool) -> float:
+    """CPU milliseconds of a LIBERO fresh scene's `start`, by robosuite's reload or in place
+    (the default; the same scene to the bit)."""
+    env.reload_fresh_scenes = reload
+    env.start(keys[0])  # the first in place compiles the loaded poses once
+    start = time.process_time()
+    for key in keys:
+        env.start(key)
+    env.reload_fresh_scenes = False
+    return 1000 * (time.process_time() - start) / len(keys)
 
 
 STEP_PATHS = {"physics": "physics alone (mj_step x {substeps})",
@@ -543,6 +560,8 @@ def _envs_args(argv: list[str]):
     parser.add_argument("--steps", type=int, default=200,
                         help="control steps timed per path, no cameras (0: skip the step speeds)")
     parser.add_argument("--camera-steps", type=int, default=20, help="the same, with cameras")
+    parser.add_argument("--resets", type=int, default=10,
+                        help="fresh-scene resets timed per way, reload and in place (0: skip)")
     return parser.parse_args(argv)
 
 
@@ -574,7 +593,7 @@ def main(argv: list[str]) -> int:
         args = _envs_args(argv[1:])
         try:
             bench_envs(args.bench, args.tasks, args.cameras, args.image_size, args.steps,
-                       args.camera_steps)
+                       args.camera_steps, args.resets)
         except RetainError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
