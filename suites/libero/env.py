@@ -147,8 +147,8 @@ class LiberoTaskEnv(TaskEnv):
                  fast_step: bool | None = None, reload_fresh_scenes: bool = False):
         self.task, self.cameras = task, cameras
         self.fast_step = fast_step_default() if fast_step is None else fast_step
-        # a fresh scene by robosuite's reload (about 1.5 s) instead of a reset in place (about
-        # 10 ms): the reference tests/test_suite_libero.py holds the reset in place to
+        # a fresh scene by robosuite's reload (1.5-3 s) instead of a reset in place (10-30
+        # ms): the reference tests/test_suite_libero.py holds the reset in place to
         self.reload_fresh_scenes = reload_fresh_scenes
         self._loaded_poses: tuple[np.ndarray, np.ndarray] | None = None
         self._stepper: FastStepper | None = None
