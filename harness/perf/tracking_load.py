@@ -247,9 +247,11 @@ class LoadResult:
 
 def run_load(kind: str, writers: int, volume: Volume, root: Path,
              fault: Callable[[Store], None] | None = None, env: dict | None = None,
-             server_workers: int | None = None) -> LoadResult:
-    """Start the store, run `writers` processes at once, read the store back. `fault` runs in a
-    thread once the writers have started (a test's injected failure)."""
+             server_workers: int | None = None,
+             before_go: Callable[[Store], None] | None = None) -> LoadResult:
+    """Start the store, run `writers` processes at once, read the store back. A test's injected
+    failure: `before_go` runs once every writer has opened the store and before any writes (so
+    that a fault it starts cannot miss them), `fault` in a thread once the writers have started."""
     from harness.track.server import TrackingServer
 
     _check_kinds([kind])
@@ -259,7 +261,8 @@ def run_load(kind: str, writers: int, volume: Volume, root: Path,
     if kind == "server":
         store.server = TrackingServer(root / "server", workers=server_workers).start()
     try:
-        timing, reported, unreported = _run_writers(store, writers, volume, fault, env)
+        timing, reported, unreported = _run_writers(store, writers, volume, fault, env,
+                                                    before_go)
         load = os.getloadavg()[0]
         result = check_store(store, writers, volume)
     finally:
@@ -273,7 +276,7 @@ def run_load(kind: str, writers: int, volume: Volume, root: Path,
     return result
 
 
-def _run_writers(store: Store, writers: int, volume: Volume, fault, env):
+def _run_writers(store: Store, writers: int, volume: Volume, fault, env, before_go=None):
     env = {**os.environ, **(env or {})}
     env.pop("PYTEST_CURRENT_TEST", None)  # MLflow checks its own sessions under pytest
     cmd = [sys.executable, "-m", "harness.perf.tracking_load", "_writer", store.uri,
@@ -286,6 +289,8 @@ def _run_writers(store: Store, writers: int, volume: Volume, fault, env):
                                       stdout=subprocess.PIPE, stderr=err, text=True, env=env))
     try:
         ready = [_wait_ready(p) for p in procs]
+        if before_go:
+            before_go(store)
         for p in procs:  # all are ready (or failed): start them together
             if p.poll() is None:
                 p.stdin.write("go\n")
