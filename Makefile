@@ -82,7 +82,8 @@ bench-eval: $(STAMP)
 # the memory and build time of a benchmark's simulators, one per task as an evaluation holds them;
 # then, on LIBERO, its first task's control step: the physics alone, robosuite's path and the fast
 # path, side by side (and with cameras=true the same with both cameras rendering; STEPS=0 skips
-# it), and a fresh scene's reset by robosuite's reload and in place
+# it), how far its joint positions move when the controls are off in their last bits, and a fresh
+# scene's reset by robosuite's reload and in place
 bench-envs: $(STAMP)
 	$(PY) -m harness.perf.throughput envs --bench $(or $(BENCH),libero-paper) $(if $(TASKS),--tasks $(TASKS)) \
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \

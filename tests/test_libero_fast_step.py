@@ -12,20 +12,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from harness.perf.throughput import sweep_actions as actions
 from suites.libero import fast_step
 from suites.libero.env import FAST_STEP_ENV, FRESH_PLACEMENT, LiberoTaskEnv, fast_step_default
 from suites.libero.tasks import SUITES, all_tasks, suite_tasks
 
 STEPS = 300
-
-
-def actions(n: int, seed: int = 0) -> np.ndarray:
-    """A seeded random walk in [-1, 1]^6 with a gripper that opens and closes: the arm sweeps
-    the workspace and runs into the table and objects, where a wrong bit grows fastest."""
-    rng = np.random.default_rng(seed)
-    arm = np.clip(np.cumsum(rng.normal(0, 0.3, (n, 6)), axis=0), -1, 1)
-    grip = np.where(np.arange(n) // 25 % 2 == 0, -1.0, 1.0)[:, None]
-    return np.concatenate([arm, grip], axis=1)
 
 
 def rollout(env: LiberoTaskEnv, fast: bool, key: int, acts: np.ndarray):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import re
 
-from harness.perf.throughput import bench_envs, main
+from harness.perf.throughput import bench_envs, main, nudged_drift, sweep_actions
 
 
 def test_bench_envs_builds_the_first_tasks_and_prints_their_memory(capsys):
@@ -27,11 +27,11 @@ def test_bench_envs_command_line_names_an_unknown_benchmark(capsys):
 
 def test_bench_envs_on_libero_prints_the_control_step_beside_its_physics(capsys):
     """On LIBERO the memory line is followed by the first task's control step on each path,
-    then a fresh scene's reset both ways."""
+    how far a last-bit change in its controls moves it, then a fresh scene's reset both ways."""
     assert main(["envs", "--bench", "libero-spatial", "--tasks", "1", "--steps", "2",
                  "--resets", "1"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 6 and lines[0].startswith("1 of libero-spatial's libero simulators")
+    assert len(lines) == 7 and lines[0].startswith("1 of libero-spatial's libero simulators")
     assert re.fullmatch(r"control step of \w+ \(2 seeded random steps from init state 0\), "
                         r"no cameras:", lines[1]), lines[1]
     rows = [re.fullmatch(r"  (.+?) +([\d.]+) steps/s +([\d.]+)x the physics' time", line)
@@ -40,6 +40,24 @@ def test_bench_envs_on_libero_prints_the_control_step_beside_its_physics(capsys)
     assert [row[1] for row in rows] == ["physics alone (mj_step x 25)", "robosuite's env.step",
                                         "fast path (suites/libero/fast_step.py)"]
     assert float(rows[0][3]) == 1.0 and all(float(row[2]) > 0 for row in rows)
+    assert re.fullmatch(r"  controls off by a relative 1e-15 at every substep, the joint positions "
+                        r"2 steps later: \S+ apart \(these random steps\), \S+ \(a sweep into "
+                        r"the table and objects\)", lines[5]), lines[5]
     resets = re.fullmatch(r"  a fresh scene's reset \(1 demo keys\): robosuite's reload (\d+) ms, "
-                          r"in place (\d+) ms", lines[5])
-    assert resets and int(resets[1]) > 0, lines[5]
+                          r"in place (\d+) ms", lines[6])
+    assert resets and int(resets[1]) > 0, lines[6]
+
+
+def test_a_nudge_in_the_controls_moves_the_trajectory_and_none_leaves_it_alone():
+    """nudged_drift compares two rollouts of one env: unscaled, they are the same to the bit."""
+    from suites.libero.env import LiberoTaskEnv
+    from suites.libero.tasks import all_tasks, suite_tasks
+
+    env = LiberoTaskEnv(all_tasks()[suite_tasks("libero_object")[0]])
+    try:
+        acts = sweep_actions(10)
+        assert nudged_drift(env, acts, nudge=0.0) == 0.0
+        assert 0.0 < nudged_drift(env, acts, nudge=1e-6) < 1e-3
+        assert "step2" not in vars(env.env.sim)  # the class's method again
+    finally:
+        env.close()

@@ -424,6 +424,12 @@ def bench_envs(bench: str, n_tasks: int = 0, cameras: bool = False, image_size: 
             env = suite.make_env(tasks[0], with_cameras, image_size)
             try:
                 print_step_speeds(tasks[0], *step_speeds(env, n), with_cameras, image_size, n)
+                if not with_cameras:
+                    free, sweep = (nudged_drift(env, acts) for acts in
+                                   (random_actions(n), sweep_actions(n)))
+                    print(f"  controls off by a relative {NUDGE:.0e} at every substep, the joint "
+                          f"positions {n} steps later: {free:.1e} apart (these random steps), "
+                          f"{sweep:.1e} (a sweep into the table and objects)")
                 if not with_cameras and resets > 0:
                     keys = suite.episode_keys(tasks[0], "demo", resets)
                     reload, in_place = (fresh_scene_ms(env, keys, r) for r in (True, False))
@@ -431,6 +437,57 @@ def bench_envs(bench: str, n_tasks: int = 0, cameras: bool = False, image_size: 
                           f"{reload:.0f} ms, in place {in_place:.0f} ms")
             finally:
                 env.close()
+
+
+# about how far the same torques computed another exact way (another LAPACK route) are apart
+NUDGE = 1e-15
+
+
+def random_actions(steps: int, seed: int = 0):
+    """`step_speeds`' episode: uniform in [-1, 1]^7, mostly in free space."""
+    import numpy as np
+
+    return np.random.default_rng(seed).uniform(-1, 1, (steps, 7))
+
+
+def sweep_actions(steps: int, seed: int = 0):
+    """A seeded random walk in [-1, 1]^6 with a gripper that opens and closes: the arm sweeps
+    the workspace and runs into the table and objects, where a wrong bit grows fastest."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    arm = np.clip(np.cumsum(rng.normal(0, 0.3, (steps, 6)), axis=0), -1, 1)
+    grip = np.where(np.arange(steps) // 25 % 2 == 0, -1.0, 1.0)[:, None]
+    return np.concatenate([arm, grip], axis=1)
+
+
+def nudged_drift(env, actions, key: int = 0, nudge: float = NUDGE) -> float:
+    """How far robosuite's trajectory under `actions` moves when every substep's controls are
+    scaled by 1 + `nudge` before the physics step: the largest gap in joint positions at its end.
+    Contacts amplify a last-bit change, so a faster control step has to keep robosuite's bits,
+    not just its formula, to keep its trajectories."""
+    import numpy as np
+
+    env.fast_step = False
+    sim = env.env.sim
+    step2, ends = sim.step2, []
+
+    def nudged() -> None:
+        sim.data.ctrl[:] *= 1 + nudge
+        step2()
+
+    for scale in (False, True):
+        env.reset(key)
+        if scale:
+            sim.step2 = nudged
+        try:
+            for action in actions:
+                env.step(action)
+        finally:
+            if scale:
+                del sim.step2  # the class's method again
+        ends.append(np.array(sim.data.qpos))
+    return float(np.abs(ends[1] - ends[0]).max())
 
 
 def fresh_scene_ms(env, keys: list[int], reload: bool) -> float:
@@ -458,9 +515,7 @@ def step_speeds(env, steps: int, key: int = 0, seed: int = 0,
     cameras rendered once per control step as the observations render them. Timed in the
     process's CPU time, the best of `repeats` interleaved runs each: a shared machine's load only
     ever slows a run down. Also returns the physics substeps per control step."""
-    import numpy as np
-
-    actions = np.random.default_rng(seed).uniform(-1, 1, (steps, 7))
+    actions = random_actions(steps, seed)
     controls = _recorded_controls(env, actions, key)
     speeds = dict.fromkeys(STEP_PATHS, 0.0)
     for _ in range(repeats):
