@@ -104,6 +104,11 @@ class Suite(ABC):
         (a suite may bump the tasks a change touched, and keep the others' demos)."""
         return "1"
 
+    evaluation_version: str = ""
+    """Names how the suite's evaluation episodes start, part of the stage-0 cache key: bump it
+    when they change (a cached stage-0 evaluation is then made anew); "" keeps the keys made
+    before it existed."""
+
     spatial_probe_version: str = ""
     """Names the suite's spatial probe (its widened initial states) and is part of the stage-0
     cache key; "" when the suite has none."""

@@ -83,6 +83,35 @@ def test_evaluation_episode_i_starts_from_init_state_i_mod_50(object_env):
     assert [(e.seed, e.max_steps) for e in episodes] == [(0, 280), (1, 280), (0, 220), (1, 220)]
 
 
+def test_an_evaluation_episode_keeps_liberos_controller_and_a_demo_its_noisy_start(object_env):
+    """robosuite builds the arm's OSC controller at the reset, with the arm's pose then as its
+    nullspace target, and set_init_state leaves that target alone: an init state's episode must
+    reset without the arm's noise, as LIBERO's evaluation env (no noise) does; a fresh scene
+    draws it."""
+    robot = object_env.env.env.robots[0]
+
+    def target(key: int) -> np.ndarray:
+        object_env.start(key)
+        return np.array(robot.composite_controller.part_controllers["right"].initial_joint)
+
+    demo = SUITE.episode_keys(OBJECT_TASK, "demo", 1)[0]
+    for key in (3, demo, 3):  # an evaluation episode after a demo's is LIBERO's all the same
+        if key == demo:
+            assert np.abs(target(key) - robot.init_qpos).max() > 1e-3  # the demo's noisy start
+        else:
+            np.testing.assert_array_equal(target(key), robot.init_qpos)
+
+
+def test_the_evaluation_version_is_part_of_the_stage0_cache_key(monkeypatch):
+    from harness.config.benchmark import load_benchmark
+    from harness.protocol.foundation import stage0_key
+
+    cfg = load_benchmark("libero-spatial")
+    versioned = stage0_key(cfg, SUITE)
+    monkeypatch.setattr(type(SUITE), "evaluation_version", "")
+    assert stage0_key(cfg, SUITE) != versioned
+
+
 def test_demo_episodes_are_fresh_seeded_scenes_not_evaluation_states(object_env):
     keys = SUITE.episode_keys(OBJECT_TASK, "demo", 2)
     assert all(k >= FRESH_PLACEMENT for k in keys)

@@ -101,6 +101,8 @@ def stage0_key(cfg: BenchConfig, suite: Suite) -> str:
             "heldout": [demo_spec(cfg, suite, t, "heldout").key() for t in tasks]}
     if cfg.eval_step_cap:  # off, the key is as before the cap existed
         spec["eval"].append(cfg.eval_step_cap)
+    if suite.evaluation_version:  # "", the key is as before the suite versioned its episodes
+        spec["evaluation"] = suite.evaluation_version
     if cfg.spatial_episodes > 0:  # off, the key (and the cached record) is as before the probe
         spec["spatial"] = [cfg.spatial_episodes, suite.spatial_probe_version]
     return _hash(spec)

@@ -21,6 +21,9 @@ class LiberoSuite(Suite):
     action_dim = ACTION_DIM
     max_episode_steps = 520  # the longest per-suite limit (libero_10); max_steps(task) is the rule
     spatial_probe_version = "offset3-6cm-1"
+    # 2: an init state's episode resets without the arm's initialization noise, as LIBERO's
+    # evaluation does (the OSC controller's nullspace target is LIBERO's home pose; env.py)
+    evaluation_version = "2"
     simulator_mb = (180.0, 325.0)  # make bench-envs BENCH=libero-paper: 179 MB, 322 with cameras
 
     def __init__(self):

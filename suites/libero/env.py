@@ -59,11 +59,13 @@ MAX_DRAWS = 200  # offsets tried per object before it is left where it is
 INIT_INDEX_BITS = 6  # a spatial key's low bits hold its init state's index (< 64)
 NOOP = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)  # LIBERO's dummy action: hold, open
 CAMERAS = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "robot0_eye_in_hand"}
-# The arm's start: LIBERO's init states were drawn with robosuite's "default" initialization noise
-# (N(0, 0.02 rad) on each of the 7 arm joints; the 50 states' joint spread is 0.017-0.022).
-# ControlEnv's own default is none, and demos that all start at one pose leave the policy lost
-# from any other: issue 15's libero-broad foundation succeeded from 2-9 of 10 demo starts and
-# 0-2 of 10 init states on the same tasks.
+# The arm's start in a fresh scene: LIBERO's init states were drawn with robosuite's "default"
+# initialization noise (N(0, 0.02 rad) on each of the 7 arm joints; the 50 states' joint spread
+# is 0.017-0.022). ControlEnv's own default is none, and demos that all start at one pose leave
+# the policy lost from any other: issue 15's libero-broad foundation succeeded from 2-9 of 10
+# demo starts and 0-2 of 10 init states on the same tasks. An init-state episode draws none, as
+# LIBERO's evaluation env does: robosuite builds the OSC controller at the reset with the arm's
+# pose then as its nullspace target, which set_init_state does not move (`start`).
 ROBOT_INIT_NOISE = "default"
 # Set to 0 (or false/no/off) to step every LIBERO env through robosuite's own `env.step`.
 FAST_STEP_ENV = "RETAIN_LIBERO_FAST_STEP"
@@ -154,6 +156,7 @@ class LiberoTaskEnv(TaskEnv):
         self._stepper: FastStepper | None = None
         self.env = make_raw_env(task, cameras, image_size)  # the raw LIBERO env experts get
         self.objects = [obj.name for obj in self.env.env.objects]  # BDDL order: fixed per task
+        self.fresh_noise = dict(self.env.env.robots[0].initialization_noise)  # robosuite's default
         if len(self.objects) > MAX_OBJECTS:
             raise ValueError(f"LIBERO task {task.name!r} has {len(self.objects)} objects; the "
                              f"state holds {MAX_OBJECTS}")
@@ -181,6 +184,7 @@ class LiberoTaskEnv(TaskEnv):
         if fresh:
             self._as_loaded()
         self.env.env.rng = np.random.default_rng(seed)  # robosuite draws the arm's noise from it
+        self._arm_noise(fresh)
         saved = np.random.get_state()
         np.random.seed(seed % (1 << 32))
         try:
@@ -200,6 +204,16 @@ class LiberoTaskEnv(TaskEnv):
         data.qacc_warmstart[:] = 0
         data.ctrl[:] = 0
         self.raw_obs = self.env.set_init_state(state)
+
+    def _arm_noise(self, fresh: bool) -> None:
+        """robosuite's initialization noise for the next reset: its default in a fresh scene, none
+        before an init state. The reset builds the arm's controller with the pose it draws as
+        the nullspace target, and set_init_state moves the arm but not that target: with noise,
+        an init state's episode had another target from LIBERO's evaluation (no noise) on every
+        task (up to 15% longer expert episodes) until this."""
+        robot = self.env.env.robots[0]  # a reload makes a new one: set it at every start
+        robot.initialization_noise = ({**self.fresh_noise} if fresh
+                                      else {**self.fresh_noise, "magnitude": 0.0})
 
     def _as_loaded(self) -> None:
         """Make the next reset place a fresh scene as a freshly loaded model would.
