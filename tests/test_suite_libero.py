@@ -102,14 +102,17 @@ def test_an_evaluation_episode_keeps_liberos_controller_and_a_demo_its_noisy_sta
             np.testing.assert_array_equal(target(key), robot.init_qpos)
 
 
-def test_the_evaluation_version_is_part_of_the_stage0_cache_key(monkeypatch):
-    from harness.config.benchmark import load_benchmark
+def test_the_evaluation_version_is_part_of_the_stage0_and_job_keys(monkeypatch):
+    """A change to how evaluation episodes start makes the cached stage-0 evaluation, the jobs
+    (their MLflow runs) and their stage checkpoints (which hold the evaluations) new ones."""
     from harness.protocol.foundation import stage0_key
+    from harness.run.plan import plan, variant_job_key
 
-    cfg = load_benchmark("libero-spatial")
-    versioned = stage0_key(cfg, SUITE)
+    variant = plan(["BENCH=libero-spatial", "METHOD=sft"]).variants[0]
+    keys = stage0_key(variant.cfg, SUITE), variant_job_key(variant, SUITE, 0)
     monkeypatch.setattr(type(SUITE), "evaluation_version", "")
-    assert stage0_key(cfg, SUITE) != versioned
+    assert stage0_key(variant.cfg, SUITE) != keys[0]
+    assert variant_job_key(variant, SUITE, 0) != keys[1]
 
 
 def test_demo_episodes_are_fresh_seeded_scenes_not_evaluation_states(object_env):

@@ -112,7 +112,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         return TaskContext(stage=stage, task=task, data=train, policy=policy,
                            foundation_loss=foundation.final_loss, steps=cfg.steps_per_task)
 
-    run_key = run_settings_key(cfg, method, foundation.key)
+    run_key = run_settings_key(cfg, method, foundation.key, suite.evaluation_version)
     k = cfg.num_stages
     resumed = _last_finished(checkpoints, k, run_key)
     observed: list[str] = []
@@ -238,10 +238,14 @@ def _mean(values) -> float:
     return float(np.mean(values)) if values else float("nan")
 
 
-def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str) -> str:
-    """Everything a stage checkpoint depends on; a checkpoint with another key is not resumed."""
+def run_settings_key(cfg: BenchConfig, method: Method, foundation_key: str,
+                     evaluation_version: str) -> str:
+    """Everything a stage checkpoint (and its evaluation records) depends on; a checkpoint with
+    another key is not resumed, and a job with another key is another job. The suite's
+    `evaluation_version` counts where it is set ("" keeps the keys made before it existed)."""
     settings = run_key_settings(cfg)
-    blob = json.dumps([settings, method.name, method.hyperparameters(), foundation_key],
+    parts = [settings, method.name, method.hyperparameters(), foundation_key]
+    blob = json.dumps(parts + [evaluation_version] if evaluation_version else parts,
                       sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

@@ -172,5 +172,6 @@ def variant_job_key(variant: Variant, suite, seed: int) -> str:
     from harness.protocol.stream import run_settings_key
     from harness.run.jobs import job_key
 
-    run_key = run_settings_key(variant.cfg, variant.method, foundation_key(variant.cfg, suite, seed))
+    run_key = run_settings_key(variant.cfg, variant.method, foundation_key(variant.cfg, suite, seed),
+                               suite.evaluation_version)
     return job_key(run_key, seed, variant.label)

@@ -194,7 +194,9 @@ def stages_done(seed: int, variant: Variant) -> int:
     checkpoints = run_dir(cfg, variant.label, seed) / "stages"
     if not checkpoints.is_dir():
         return 0
-    run_key = run_settings_key(cfg, variant.method, foundation_key(cfg, get_suite(cfg.suite), seed))
+    suite = get_suite(cfg.suite)
+    run_key = run_settings_key(cfg, variant.method, foundation_key(cfg, suite, seed),
+                               suite.evaluation_version)
     return resumable_stage(checkpoints, cfg.num_stages, run_key) or 0
 
 
