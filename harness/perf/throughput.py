@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 
@@ -468,26 +469,38 @@ def nudged_drift(env, actions, key: int = 0, nudge: float = NUDGE) -> float:
     not just its formula, to keep its trajectories."""
     import numpy as np
 
-    env.fast_step = False
-    sim = env.env.sim
-    step2, ends = sim.step2, []
-
-    def nudged() -> None:
+    def scale() -> None:
         sim.data.ctrl[:] *= 1 + nudge
-        step2()
 
-    for scale in (False, True):
+    env.fast_step = False
+    sim, ends = env.env.sim, []
+    for hook in (None, scale):
         env.reset(key)
-        if scale:
-            sim.step2 = nudged
-        try:
+        with _before_step2(sim, hook):
             for action in actions:
                 env.step(action)
-        finally:
-            if scale:
-                del sim.step2  # the class's method again
         ends.append(np.array(sim.data.qpos))
     return float(np.abs(ends[1] - ends[0]).max())
+
+
+@contextmanager
+def _before_step2(sim, hook):
+    """Run `hook()` before each physics step robosuite's path takes (`sim.step2`, after the
+    substep's controls are set); no hook, nothing changed."""
+    if hook is None:
+        yield
+        return
+    step2 = sim.step2
+
+    def hooked() -> None:
+        hook()
+        step2()
+
+    sim.step2 = hooked
+    try:
+        yield
+    finally:
+        del sim.step2  # the class's method again
 
 
 def fresh_scene_ms(env, keys: list[int], reload: bool) -> float:
@@ -535,18 +548,9 @@ def _recorded_controls(env, actions, key: int) -> list:
     env.fast_step = False
     env.reset(key)
     sim, controls = env.env.sim, []
-    step2 = sim.step2
-
-    def recording() -> None:
-        controls.append(sim.data.ctrl.copy())
-        step2()
-
-    sim.step2 = recording
-    try:
+    with _before_step2(sim, lambda: controls.append(sim.data.ctrl.copy())):
         for action in actions:
             env.step(action)
-    finally:
-        del sim.step2  # the class's method again
     return controls
 
 
