@@ -166,12 +166,18 @@ def _changed(run_cfg: BenchConfig, base: BenchConfig, method: Method, own: dict,
     return " ".join(f"{k}={v}" for k, v in changed.items() if k not in point)
 
 
-def variant_job_key(variant: Variant, suite, seed: int) -> str:
-    """The job's identity (harness.run.jobs.job_key): its MLflow run carries it as a tag."""
+def variant_run_key(variant: Variant, suite, seed: int) -> str:
+    """What the job's stage checkpoints are made with (harness.protocol.stream.run_settings_key):
+    its settings, its foundation and the suite's evaluation version."""
     from harness.protocol.foundation import foundation_key
     from harness.protocol.stream import run_settings_key
+
+    return run_settings_key(variant.cfg, variant.method, foundation_key(variant.cfg, suite, seed),
+                            suite.evaluation_version)
+
+
+def variant_job_key(variant: Variant, suite, seed: int) -> str:
+    """The job's identity (harness.run.jobs.job_key): its MLflow run carries it as a tag."""
     from harness.run.jobs import job_key
 
-    run_key = run_settings_key(variant.cfg, variant.method, foundation_key(variant.cfg, suite, seed),
-                               suite.evaluation_version)
-    return job_key(run_key, seed, variant.label)
+    return job_key(variant_run_key(variant, suite, seed), seed, variant.label)

@@ -22,7 +22,7 @@ import yaml
 from harness.common.errors import USER_ERRORS, RetainError
 from harness.config.benchmark import NOT_IN_RUN_KEY, SHARED_BY_SWEEP_POINTS, coerce, parse_overrides
 from harness.run.execute import execute
-from harness.run.plan import Plan, Variant, plan, variant_job_key
+from harness.run.plan import Plan, Variant, plan, variant_job_key, variant_run_key
 
 STUDY_DIR = Path(__file__).parents[1] / "studies"
 
@@ -186,17 +186,14 @@ def finished_keys(pp: PartPlan) -> set[str]:
 def stages_done(seed: int, variant: Variant) -> int:
     """The stage a restart of the job resumes after: its last checkpoint, if made with the job's
     settings (one made with others, such as an earlier version of the benchmark, is not)."""
-    from harness.protocol.foundation import foundation_key
-    from harness.protocol.stream import resumable_stage, run_dir, run_settings_key
+    from harness.protocol.stream import resumable_stage, run_dir
     from suites import get_suite
 
     cfg = variant.cfg
     checkpoints = run_dir(cfg, variant.label, seed) / "stages"
     if not checkpoints.is_dir():
         return 0
-    suite = get_suite(cfg.suite)
-    run_key = run_settings_key(cfg, variant.method, foundation_key(cfg, suite, seed),
-                               suite.evaluation_version)
+    run_key = variant_run_key(variant, get_suite(cfg.suite), seed)
     return resumable_stage(checkpoints, cfg.num_stages, run_key) or 0
 
 

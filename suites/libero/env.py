@@ -210,7 +210,7 @@ class LiberoTaskEnv(TaskEnv):
         before an init state. The reset builds the arm's controller with the pose it draws as
         the nullspace target, and set_init_state moves the arm but not that target: with noise,
         an init state's episode had another target from LIBERO's evaluation (no noise) on every
-        task (up to 15% longer expert episodes) until this."""
+        task until this (turn_on_the_stove's expert: 103.5 steps an episode against 86.1)."""
         robot = self.env.env.robots[0]  # a reload makes a new one: set it at every start
         robot.initialization_noise = ({**self.fresh_noise} if fresh
                                       else {**self.fresh_noise, "magnitude": 0.0})
