@@ -9,10 +9,11 @@ trajectory and drops the rest:
 
 - the OSC torques are computed per substep from cached indices and views of MjData with
   MuJoCo's C functions (`mj_jacSite` once, the arm's block of the inertia read straight from
-  `qM`), in exactly robosuite's numpy operations on arrays of the same memory layout and with
-  robosuite's own compiled `opspace_matrices`, `nullspace_torques` and `orientation_error`, so
-  the torques are robosuite's to the bit; what is constant within a control step for an arm on
-  a fixed base (its origin, the goal in the world, the base's zero velocity) is computed once;
+  `qM`) and one compiled call (`osc_torques`: exactly robosuite's numpy operations on arrays of
+  the same memory layout, calling robosuite's own compiled `opspace_matrices`,
+  `nullspace_torques` and `orientation_error`), so the torques are robosuite's to the bit; what
+  is constant within a control step for an arm on a fixed base (its origin, the goal in the
+  world, the base's zero velocity) is computed once;
 - goals are set once per control step by robosuite's own controllers (`set_goal`: the action's
   scaling, input/output ranges, the gripper's `format_action`), and the gripper's command, which
   is constant within a step, is computed once by its controller; the first step after a reset
@@ -48,18 +49,17 @@ class Unsupported(Exception):
 
 @dataclass
 class _Arm:
-    """One OSC_POSE arm: its controller, the indices robosuite looks up by name per substep, and
+    """One OSC_POSE arm: its controller, the indices robosuite looks up by name per substep,
     views of MjData with the memory layout robosuite's own copies have (the compiled functions
-    have one code path, and make one BLAS call, per layout)."""
+    have one code path, and make one BLAS call, per layout), and `osc_torques`' buffers."""
 
     osc: object  # robosuite's OperationalSpaceController
     ref_site: int  # the end-effector site the controller tracks
     base_site: int  # the arm's "<prefix><part>_center" site: the controller's origin
     fixed_base: bool  # the base is welded to the world: its pose is constant, its velocity zero
     qvel_index: np.ndarray  # the arm's dof addresses
-    jac: np.ndarray  # [3, 7] where the arm's columns sit in a flat [3, nv] Jacobian
     mass_t: np.ndarray  # [7, 7] addresses of the arm's inertia block in qM, transposed (C order)
-    ctrl: slice | np.ndarray  # the arm's actuators
+    actuators: np.ndarray  # the arm's actuators' indices in ctrl
     low: np.ndarray  # their control range
     high: np.ndarray
     ref_pos: np.ndarray  # [3] view of site_xpos
@@ -72,7 +72,12 @@ class _Arm:
     J_ori: np.ndarray
     jacp: np.ndarray  # [3, nv] mj_jacSite's output
     jacr: np.ndarray
-    targets: tuple = ()  # per control step on a fixed base (FastStepper._targets)
+    step: np.ndarray  # osc_torques' goal, gains and base velocity for this control step
+    mass: np.ndarray  # [7, 7] the inertia block, transposed, as osc_torques last read it
+    torques: np.ndarray  # [7] its torques before the clip
+    ref_vel: np.ndarray  # [2, 3] the site's linear and angular velocity
+    origin: tuple = ()  # the controller's origin (position, orientation) for this control step
+    step_ready: bool = False  # `step` holds this control step's values (a fixed base only)
 
 
 def supported(env) -> None:
@@ -120,12 +125,12 @@ class FastStepper:
     are still the env's (a reset may rebuild any of them), and a new stepper is made if not."""
 
     def __init__(self, env, keys: list[str]):
-        from robosuite.utils import control_utils
         from robosuite.utils.observables import NO_CORRUPTION, NO_DELAY, NO_FILTER
 
+        from suites.libero import osc_torques  # imports robosuite's compiled functions
+
         supported(env)
-        self.compiled = (control_utils.opspace_matrices, control_utils.nullspace_torques,
-                         control_utils.orientation_error)  # robosuite's own, numba-compiled
+        self.kernel = osc_torques
         self.env, self.sim = env, env.sim
         self.robot = robot = env.robots[0]
         self.composite = robot.composite_controller
@@ -141,7 +146,6 @@ class FastStepper:
         self.arms = [self._arm(part, ctl) for part, ctl in parts if part in robot.arms]
         self.grippers = [(ctl, *self._actuators(part)) for part, ctl in parts
                          if part not in robot.arms]
-        self.zero = np.zeros(3)  # a fixed base's velocity, as np.dot(its all-zero Jacobian, qvel)
         # the observables asked for, sampled on robosuite's timer
         self.observables = env._observables
         enabled = [o for o in self.observables.values() if o.is_enabled()]
@@ -182,13 +186,15 @@ class FastStepper:
         while body:  # welded to the world, and no mocap body on the way
             fixed = fixed and m.body_weldid[body] == 0 and m.body_mocapid[body] < 0
             body = m.body_parentid[body]
-        ctrl, low, high = self._actuators(part)
-        J_full = np.zeros((6, len(qvel)))
-        return _Arm(osc, ref, base, fixed, qvel, np.arange(3)[:, None] * m.nv + qvel[None, :],
-                    np.ascontiguousarray(block.T), ctrl, low, high,
-                    d.site_xpos[ref], d.site_xmat[ref].reshape(3, 3),
+        _, low, high = self._actuators(part)
+        actuators = np.asarray(self.robot._ref_actuators_indexes_dict[part], dtype=np.int64)
+        n, J_full = len(qvel), np.zeros((6, len(qvel)))
+        return _Arm(osc, ref, base, fixed, qvel, np.ascontiguousarray(block.T), actuators, low,
+                    high, d.site_xpos[ref], d.site_xmat[ref].reshape(3, 3),
                     _rows(d.qpos, qpos), _rows(d.qvel, qvel), _rows(d.qfrc_bias, qvel),
-                    J_full, J_full[:3], J_full[3:], np.zeros((3, m.nv)), np.zeros((3, m.nv)))
+                    J_full, J_full[:3], J_full[3:], np.zeros((3, m.nv)), np.zeros((3, m.nv)),
+                    np.zeros((self.kernel.STEP_ROWS, 3)), np.zeros((n, n)), np.zeros(n),
+                    np.zeros((2, 3)))
 
     def bound_to(self, env) -> bool:
         robot = env.robots[0]
@@ -209,9 +215,9 @@ class FastStepper:
         for substep in range(self.substeps):
             mujoco.mj_step1(m, d)
             if substep == 0:
-                self._policy_step(action)
                 for arm in self.arms:
-                    arm.targets = self._targets(arm) if arm.fixed_base else ()
+                    arm.step_ready = False  # a new goal
+                self._policy_step(action)
             else:
                 for arm in self.arms:
                     self._torques(arm, keep=substep == last)
@@ -251,68 +257,46 @@ class FastStepper:
             arm.osc.new_update = False
         self.composite.set_goal(action)
         for arm in self.arms:
-            arm.targets = ()
             self._torques(arm)
             arm.osc.new_update = True  # as run_controller leaves it
         for gripper, index, low, high in self.grippers:
             # constant within the step: it stays in data.ctrl for the other substeps
             self.ctrl[index] = np.clip(gripper.run_controller(), low, high)
 
-    def _targets(self, arm: _Arm) -> tuple:
-        """The controller's origin, its goal in the world, and the gains' halves: run_controller
-        recomputes them per substep from values that are constant within a step on a fixed base."""
-        osc = arm.osc
+    def _set_step(self, arm: _Arm) -> None:
+        """This control step's origin, goal and gains into `arm.step` (constant within a step on
+        a fixed base; an arm on a moving base gets its base's velocity too, every substep)."""
         origin_pos = np.array(self.site_xpos[arm.base_site])
         origin_ori = np.array(self.site_xmat[arm.base_site].reshape([3, 3]))
-        desired_world_pos = origin_pos + np.dot(origin_ori, osc.goal_pos)
-        desired_world_ori = np.dot(origin_ori, osc.goal_ori)
-        return (origin_pos, origin_ori, desired_world_pos, desired_world_ori,
-                osc.kp[0:3], osc.kp[3:6], osc.kd[0:3], osc.kd[3:6])
+        base_vel = None
+        if not arm.fixed_base:
+            mujoco.mj_jacSite(self.model, self.data, arm.jacp, arm.jacr, arm.base_site)
+            base_vel = np.dot(arm.jacp, self.qvel), np.dot(arm.jacr, self.qvel)
+        self.kernel.step_values(arm.step, arm.osc, origin_pos, origin_ori, base_vel)
+        arm.origin, arm.step_ready = (origin_pos, origin_ori), arm.fixed_base
 
     def _torques(self, arm: _Arm, keep: bool = False) -> None:
         """OperationalSpaceController.update + run_controller + the robot's clip, for the fixed
-        impedance, delta input in the base frame, no interpolator (supported()): the same numpy
-        operations on the same values, so the same bits. `keep` leaves the state read in the
-        controller, as robosuite's last substep does: the first step after a reset sets its goal
-        from what the controller last read (robosuite updates it lazily)."""
-        m, d, osc = self.model, self.data, arm.osc
-        opspace_matrices, nullspace_torques, orientation_error = self.compiled
-        (origin_pos, origin_ori, desired_world_pos, desired_world_ori,
-         kp_pos, kp_ori, kd_pos, kd_ori) = arm.targets or self._targets(arm)
-        jacp, jacr, J_full, J_pos, J_ori = arm.jacp, arm.jacr, arm.J_full, arm.J_pos, arm.J_ori
-        mujoco.mj_jacSite(m, d, jacp, jacr, arm.ref_site)
-        ref_pos_vel, ref_ori_vel = np.dot(jacp, self.qvel), np.dot(jacr, self.qvel)
-        jacp.take(arm.jac, out=J_pos)
-        jacr.take(arm.jac, out=J_ori)
-        mass_matrix = self.qM[arm.mass_t].T  # Fortran order, as robosuite's indexing leaves it
-        if arm.fixed_base:
-            base_pos_vel = base_ori_vel = self.zero
-        else:
-            mujoco.mj_jacSite(m, d, jacp, jacr, arm.base_site)
-            base_pos_vel, base_ori_vel = np.dot(jacp, self.qvel), np.dot(jacr, self.qvel)
-
-        ori_error = orientation_error(desired_world_ori, arm.ref_ori)
-        position_error = desired_world_pos - arm.ref_pos
-        vel_pos_error = -(ref_pos_vel - base_pos_vel)
-        desired_force = np.multiply(position_error, kp_pos) + np.multiply(vel_pos_error, kd_pos)
-        vel_ori_error = -(ref_ori_vel - base_ori_vel)
-        desired_torque = np.multiply(ori_error, kp_ori) + np.multiply(vel_ori_error, kd_ori)
-        _, lambda_pos, lambda_ori, nullspace_matrix = opspace_matrices(mass_matrix, J_full, J_pos,
-                                                                       J_ori)
-        decoupled_wrench = np.concatenate([np.dot(lambda_pos, desired_force),
-                                           np.dot(lambda_ori, desired_torque)])
-        torques = np.dot(J_full.T, decoupled_wrench) + arm.bias
-        torques += nullspace_torques(mass_matrix, nullspace_matrix, osc.initial_joint,
-                                     arm.joint_pos, arm.joint_vel)
-        # np.clip's own ufunc loop is max-then-min: the same bits, without its Python wrapper
-        self.ctrl[arm.ctrl] = np.minimum(np.maximum(torques, arm.low), arm.high)
+        impedance, delta input in the base frame, no interpolator (supported()): osc_torques,
+        robosuite's operations on the same values, so the same bits. `keep` leaves the state read
+        in the controller, as robosuite's last substep does: the first step after a reset sets
+        its goal from what the controller last read (robosuite updates it lazily)."""
+        osc = arm.osc
+        if not arm.step_ready:
+            self._set_step(arm)
+        mujoco.mj_jacSite(self.model, self.data, arm.jacp, arm.jacr, arm.ref_site)
+        self.kernel.osc_torques(arm.jacp, arm.jacr, self.qvel, arm.qvel_index, self.qM, arm.mass_t,
+                         arm.J_full, arm.J_pos, arm.J_ori, arm.step, arm.ref_pos, arm.ref_ori,
+                         arm.bias, osc.initial_joint, arm.joint_pos, arm.joint_vel, arm.low,
+                         arm.high, self.ctrl, arm.actuators, arm.mass, arm.torques, arm.ref_vel)
         if keep:
-            osc.update_origin(origin_pos, origin_ori)
+            osc.update_origin(*arm.origin)
             osc.ref_pos[:], osc.ref_ori_mat[:, :] = arm.ref_pos, arm.ref_ori
-            osc.ref_pos_vel[:], osc.ref_ori_vel[:] = ref_pos_vel, ref_ori_vel
-            osc.J_pos[:, :], osc.J_ori[:, :], osc.J_full[:, :] = J_pos, J_ori, J_full
+            osc.ref_pos_vel[:], osc.ref_ori_vel[:] = arm.ref_vel
+            osc.J_pos[:, :], osc.J_ori[:, :], osc.J_full[:, :] = arm.J_pos, arm.J_ori, arm.J_full
             osc.joint_pos, osc.joint_vel = np.array(arm.joint_pos), np.array(arm.joint_vel)
-            osc.mass_matrix, osc.torques, osc.new_update = mass_matrix, torques, True
+            osc.mass_matrix = arm.mass.T.copy(order="K")  # Fortran order, as robosuite's
+            osc.torques, osc.new_update = arm.torques.copy(), True
 
     def _keep_gripper_state(self) -> None:
         """What the grippers' controllers read at each substep (GripperController.update); their
