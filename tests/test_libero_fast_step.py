@@ -93,6 +93,33 @@ def test_a_wrong_gain_is_caught(spatial_env, monkeypatch):
         assert_same(spatial_env, steps=20)
 
 
+def test_compiled_torques_are_numpys_to_the_bit(spatial_env):
+    """osc_torques compiled by numba gives what its own Python body gives with numpy: numba's
+    arithmetic and BLAS calls round as numpy's do (the rollouts above compare the trajectories)."""
+    from suites.libero.osc_torques import osc_torques
+
+    if not hasattr(osc_torques, "py_func"):
+        pytest.skip("robosuite's numba is turned off: osc_torques is Python already")
+    spatial_env.fast_step = True
+    spatial_env.reset(4)
+    stepper = spatial_env._stepper
+    (arm,) = stepper.arms
+    for action in actions(12, seed=4):
+        spatial_env.step(action)
+        outputs = []
+        for kernel in (osc_torques, osc_torques.py_func):
+            ctrl, mass, torques, ref_vel = (np.array(a) for a in
+                                            (stepper.ctrl, arm.mass, arm.torques, arm.ref_vel))
+            kernel(arm.jacp, arm.jacr, stepper.qvel, arm.qvel_index, stepper.qM, arm.mass_t,
+                   arm.J_full, arm.J_pos, arm.J_ori, arm.step, arm.ref_pos, arm.ref_ori, arm.bias,
+                   arm.osc.initial_joint, arm.joint_pos, arm.joint_vel, arm.low, arm.high, ctrl,
+                   arm.actuators, mass, torques, ref_vel)
+            outputs.append((ctrl, mass, torques, ref_vel))
+        assert np.abs(outputs[0][2]).max() > 0  # real torques, not an untouched buffer
+        for compiled, python in zip(*outputs, strict=True):
+            np.testing.assert_array_equal(compiled, python)
+
+
 def test_paths_can_take_turns_within_an_episode(spatial_env):
     """The fast path leaves robosuite's controller and observable state as robosuite's step
     would, so the two may alternate (a test or tool stepping the raw env) with no trace."""

@@ -15,7 +15,7 @@ Episodes (`reset(key)`):
 Either way SETTLE_STEPS no-op steps follow (gripper open) while objects settle; they are not
 part of the episode, as in LIBERO's evaluations.
 
-Steps go through `fast_step.FastStepper` (robosuite's control step to the bit, two to three
+Steps go through `fast_step.FastStepper` (robosuite's control step to the bit, about three
 times as fast) unless `fast_step=False` or the environment variable RETAIN_LIBERO_FAST_STEP=0
 asks for robosuite's own `env.step`.
 
