@@ -16,6 +16,7 @@ import re
 from dataclasses import dataclass
 from functools import cache
 
+import suites.robosuite_quiet  # noqa: F401  (before LIBERO's envs import gym and robosuite)
 from suites.base import SuiteError
 from suites.libero.install import point_libero_at_config
 
