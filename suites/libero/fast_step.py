@@ -106,16 +106,11 @@ def supported(env) -> None:
             raise Unsupported(f"{part} controller {type(ctl).__name__}")
 
 
-def _run(index: np.ndarray) -> slice | np.ndarray:
-    """The index as a slice where it is a contiguous run: a view to read, a cheap write."""
-    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
-        return slice(int(index[0]), int(index[0]) + len(index))
-    return index
-
-
 def _rows(array: np.ndarray, index: np.ndarray) -> np.ndarray:
     """array[index]: a view where the index is a contiguous run (the same values, no copy)."""
-    return array[_run(index)]
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return array[int(index[0]):int(index[0]) + len(index)]
+    return array[index]
 
 
 class FastStepper:
@@ -164,10 +159,11 @@ class FastStepper:
         self.period = enabled[0]._sampling_timestep
         self.raw: dict = {}
 
-    def _actuators(self, part: str) -> tuple[slice | np.ndarray, np.ndarray, np.ndarray]:
-        index = np.asarray(self.robot._ref_actuators_indexes_dict[part])
+    def _actuators(self, part: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The part's actuators' indices in ctrl and their control range."""
+        index = np.asarray(self.robot._ref_actuators_indexes_dict[part], dtype=np.int64)
         ranges = self.sim.model.actuator_ctrlrange
-        return _run(index), np.array(ranges[index, 0]), np.array(ranges[index, 1])
+        return index, np.array(ranges[index, 0]), np.array(ranges[index, 1])
 
     def _arm(self, part: str, osc) -> _Arm:
         m, d = self.model, self.data
@@ -186,8 +182,7 @@ class FastStepper:
         while body:  # welded to the world, and no mocap body on the way
             fixed = fixed and m.body_weldid[body] == 0 and m.body_mocapid[body] < 0
             body = m.body_parentid[body]
-        _, low, high = self._actuators(part)
-        actuators = np.asarray(self.robot._ref_actuators_indexes_dict[part], dtype=np.int64)
+        actuators, low, high = self._actuators(part)
         n, J_full = len(qvel), np.zeros((6, len(qvel)))
         return _Arm(osc, ref, base, fixed, qvel, np.ascontiguousarray(block.T), actuators, low,
                     high, d.site_xpos[ref], d.site_xmat[ref].reshape(3, 3),
