@@ -107,14 +107,9 @@ def test_compiled_torques_are_numpys_to_the_bit(spatial_env):
     for action in actions(12, seed=4):
         spatial_env.step(action)
         outputs = []
-        for kernel in (osc_torques, osc_torques.py_func):
-            ctrl, mass, torques, ref_vel = (np.array(a) for a in
-                                            (stepper.ctrl, arm.mass, arm.torques, arm.ref_vel))
-            kernel(arm.jacp, arm.jacr, stepper.qvel, arm.qvel_index, stepper.qM, arm.mass_t,
-                   arm.J_full, arm.J_pos, arm.J_ori, arm.step, arm.ref_pos, arm.ref_ori, arm.bias,
-                   arm.osc.initial_joint, arm.joint_pos, arm.joint_vel, arm.low, arm.high, ctrl,
-                   arm.actuators, mass, torques, ref_vel)
-            outputs.append((ctrl, mass, torques, ref_vel))
+        for kernel in (osc_torques, osc_torques.py_func):  # each writes the same buffers anew
+            kernel(*stepper.osc_arguments(arm))
+            outputs.append([np.array(a) for a in (stepper.ctrl, arm.mass, arm.torques, arm.ref_vel)])
         assert np.abs(outputs[0][2]).max() > 0  # real torques, not an untouched buffer
         for compiled, python in zip(*outputs, strict=True):
             np.testing.assert_array_equal(compiled, python)

@@ -280,10 +280,7 @@ class FastStepper:
         if not arm.step_ready:
             self._set_step(arm)
         mujoco.mj_jacSite(self.model, self.data, arm.jacp, arm.jacr, arm.ref_site)
-        self.kernel.osc_torques(arm.jacp, arm.jacr, self.qvel, arm.qvel_index, self.qM, arm.mass_t,
-                         arm.J_full, arm.J_pos, arm.J_ori, arm.step, arm.ref_pos, arm.ref_ori,
-                         arm.bias, osc.initial_joint, arm.joint_pos, arm.joint_vel, arm.low,
-                         arm.high, self.ctrl, arm.actuators, arm.mass, arm.torques, arm.ref_vel)
+        self.kernel.osc_torques(*self.osc_arguments(arm))
         if keep:
             osc.update_origin(*arm.origin)
             osc.ref_pos[:], osc.ref_ori_mat[:, :] = arm.ref_pos, arm.ref_ori
@@ -292,6 +289,14 @@ class FastStepper:
             osc.joint_pos, osc.joint_vel = np.array(arm.joint_pos), np.array(arm.joint_vel)
             osc.mass_matrix = arm.mass.T.copy(order="K")  # Fortran order, as robosuite's
             osc.torques, osc.new_update = arm.torques.copy(), True
+
+    def osc_arguments(self, arm: _Arm) -> tuple:
+        """`osc_torques`' arguments for the arm: its Jacobians as last computed, MjData's views,
+        its buffers. Every output is written before it is read, so a call may be repeated."""
+        return (arm.jacp, arm.jacr, self.qvel, arm.qvel_index, self.qM, arm.mass_t, arm.J_full,
+                arm.J_pos, arm.J_ori, arm.step, arm.ref_pos, arm.ref_ori, arm.bias,
+                arm.osc.initial_joint, arm.joint_pos, arm.joint_vel, arm.low, arm.high, self.ctrl,
+                arm.actuators, arm.mass, arm.torques, arm.ref_vel)
 
     def _keep_gripper_state(self) -> None:
         """What the grippers' controllers read at each substep (GripperController.update); their
