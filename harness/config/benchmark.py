@@ -76,6 +76,9 @@ class BenchConfig:
     cache_dir: Annotated[str, MinLen(1)] = "cache"
     demos_dir: str = ""  # real LIBERO dataset files (<task>_demo.hdf5) to train on instead of experts
     progress: bool = True
+    # at plan time, the policy computes its loss and one action chunk on one sample of the
+    # suite's shapes (on the CPU: a published 3B checkpoint takes a minute and 16 GB there)
+    dry_run: bool = True
     # intra-op threads per process; small CPU batches are slower with more
     torch_threads: Annotated[int, Ge(1)] = 1
     eval_workers: Annotated[int, Ge(0), doc("0: one per core")] = 0  # evaluation processes
@@ -169,13 +172,14 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "eval_step_cap",
     "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
     "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
+    "dry_run",
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
     "policy", "policy_path", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups",
     "snapshot_minutes"})
 
 # settings that cannot change a run's results (where it is written, how rollouts are split);
 # torch_threads stays in: the summation order of a matrix product depends on it
-NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
+NOT_IN_RUN_KEY = ("progress", "dry_run", "seed", "seeds", "method", "grid", "profile", "eval_workers",
                   "eval_envs_per_task", "results_dir", "cache_dir", "executor", "jobs",
                   "snapshot_minutes")
 

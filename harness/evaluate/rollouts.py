@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import os
 from collections import Counter, deque
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from multiprocessing import get_context
 
@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from harness.common.device import autocast
+from harness.common.progress import Progress
 from harness.common.seeding import generator
 from harness.data.datasets import TrainingData, instruction_entries
 from policies.base import noise_shape
@@ -139,7 +140,7 @@ def policy_device(policy) -> torch.device:
 @torch.no_grad()
 def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
              settings: EvalSettings, noise_seed: int, open_simulators, slots_per_task: int,
-             align_chunks: bool = False) -> list[tuple[bool, int]]:
+             align_chunks: bool = False, episode_done=None) -> list[tuple[bool, int]]:
     """(success, steps) per episode. Slots step in lockstep; every slot that needs a new action
     chunk gets it from one batched policy call; a finished episode's slot starts the next
     episode of its task (at once, or with `align_chunks` at the next step that is a multiple of
@@ -147,7 +148,8 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
     chunk instead of up to one per step, for a policy whose call costs the same at any batch).
 
     `open_simulators(tasks)` gives the simulators of slots running `tasks` (one per slot), with
-    `reset` and `step` over lists of (slot, seed) and (slot, action)."""
+    `reset` and `step` over lists of (slot, seed) and (slot, action). `episode_done()` is
+    called as each episode ends (progress)."""
     policy.eval()
     device = policy_device(policy)
     n_steps = settings.n_action_steps
@@ -197,6 +199,8 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
             s.obs = result.obs
             if result.success or s.t >= episodes[s.episode].max_steps:
                 outcomes[s.episode] = (result.success, s.t)
+                if episode_done is not None:
+                    episode_done()
                 s.episode = None
                 waiting.append(s)
     return outcomes
@@ -204,10 +208,11 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
 
 def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
             settings: EvalSettings, noise_seed: int, envs: EnvCache,
-            align_chunks: bool = False) -> list[tuple[bool, int]]:
+            align_chunks: bool = False, episode_done=None) -> list[tuple[bool, int]]:
     """(success, steps) per episode, on simulators in this process (`lockstep`)."""
     return lockstep(policy, episodes, instructions, settings, noise_seed,
-                    lambda tasks: LocalSimulators(envs, tasks), settings.envs_per_task, align_chunks)
+                    lambda tasks: LocalSimulators(envs, tasks), settings.envs_per_task, align_chunks,
+                    episode_done)
 
 
 def evaluation_episodes(suite: Suite, tasks: list[str], n: int, max_episode_steps: int,
@@ -321,8 +326,9 @@ class Evaluator:
     """
 
     def __init__(self, suite: Suite, settings: EvalSettings, workers: int = 1, torch_threads: int = 1,
-                 central_policy: bool | None = None):
+                 central_policy: bool | None = None, progress: bool = False):
         self.suite, self.settings, self.workers = suite, settings, max(1, workers)
+        self.progress = progress  # episodes done out of the total, as they end
         self.torch_threads, self.central_policy = torch_threads, central_policy
         self._local = EnvCache(suite, settings) if self.workers == 1 else None
         self._pool: ProcessPoolExecutor | None = None
@@ -334,18 +340,25 @@ class Evaluator:
         episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes_of(split),
                                        self.settings.max_episode_steps, split,
                                        self.settings.step_cap)
+        with Progress(len(episodes), f"evaluation ({split}) of {len(tasks)} tasks",
+                      unit="episodes", enabled=self.progress) as shown:
+            return self._evaluate(policy, episodes, instructions, noise_seed, shown)
+
+    def _evaluate(self, policy, episodes: list[EvalEpisode], instructions, noise_seed: int,
+                  shown: Progress) -> dict[str, TaskEvaluation]:
         layout = self.layout(policy)
         on_cpu = policy_device(policy).type == "cpu"
         if layout == "central":
-            outcomes = self._central_rollout(policy, episodes, instructions, noise_seed)
+            outcomes = self._central_rollout(policy, episodes, instructions, noise_seed, shown)
             return group_by_task(episodes, outcomes)
         # an accelerator's policy rolls everything out in one batch (its numerics differ anyway)
         shards = shard(episodes, self.settings.shards) if on_cpu else [episodes]
         if layout == "in-process":
             results = [rollout(policy, share, instructions, self.settings, noise_seed,
-                               self._local, align_chunks=not on_cpu) for share in shards]
+                               self._local, align_chunks=not on_cpu, episode_done=shown.update)
+                       for share in shards]
         else:
-            results = self._per_worker_rollout(policy, shards, instructions, noise_seed)
+            results = self._per_worker_rollout(policy, shards, instructions, noise_seed, shown)
         outcome = {ep: out for share, outs in zip(shards, results) for ep, out in zip(share, outs)}
         return group_by_task(episodes, [outcome[ep] for ep in episodes])
 
@@ -358,15 +371,16 @@ class Evaluator:
             central = policy_device(policy).type != "cpu"
         return "central" if central else "per-worker"
 
-    def _central_rollout(self, policy, episodes, instructions, noise_seed) -> list[tuple[bool, int]]:
+    def _central_rollout(self, policy, episodes, instructions, noise_seed, shown: Progress
+                         ) -> list[tuple[bool, int]]:
         if self._env_workers is None:
             self._env_workers = EnvWorkers(self.suite.name, self.settings, self.workers,
                                            self.torch_threads)
         return lockstep(policy, episodes, instructions, self.settings, noise_seed,
                         self._env_workers.open, self.settings.envs_per_task * self.workers,
-                        align_chunks=True)
+                        align_chunks=True, episode_done=shown.update)
 
-    def _per_worker_rollout(self, policy, shards, instructions, noise_seed
+    def _per_worker_rollout(self, policy, shards, instructions, noise_seed, shown: Progress
                             ) -> list[list[tuple[bool, int]]]:
         """Each shard's outcomes, the shards spread over the worker processes."""
         if self._pool is None:
@@ -380,6 +394,8 @@ class Evaluator:
         weights = {k: v.detach().clone() for k, v in policy.state_dict().items()}
         futures = [self._pool.submit(_worker_rollout, policy.config, weights, share, instructions,
                                      noise_seed) for share in shards]
+        for future in as_completed(futures):  # a shard's episodes count as it comes back
+            shown.update(len(shards[futures.index(future)]))
         return [future.result() for future in futures]
 
     def close(self) -> None:

@@ -40,9 +40,18 @@ class Foundation:
     stage0: StageRecord
 
 
+def check_takes_a_path(cfg: BenchConfig) -> None:
+    """ValueError when `policy_path` is given to a policy that loads no checkpoint (or the policy
+    is unknown, naming the valid ones)."""
+    if cfg.policy_path and "path" not in get_policy(cfg.policy).Config.__dataclass_fields__:
+        raise ValueError(f"policy {cfg.policy!r} takes no policy_path; the LeRobot policies "
+                         f"(lerobot_pi0, lerobot_pi05, lerobot_smolvla) do")
+
+
 def policy_config(cfg: BenchConfig, suite: Suite):
     """The `cfg.policy` policy's config for this suite; ValueError on an unknown policy or size.
     Of the optional fields (policies/base.py) the harness fills those the Config declares."""
+    check_takes_a_path(cfg)
     image_keys = CAMERA_KEYS if cfg.cameras else ()
     declared = get_policy(cfg.policy).Config.__dataclass_fields__
     optional = {}
@@ -58,9 +67,6 @@ def policy_config(cfg: BenchConfig, suite: Suite):
         image_keys = tuple(k for k in image_keys if k in features)
     if "weights" in declared and cfg.policy_path:
         optional["weights"] = checkpoint_identity(cfg.policy_path)
-    if cfg.policy_path and "path" not in declared:
-        raise ValueError(f"policy {cfg.policy!r} takes no policy_path; the LeRobot policies "
-                         f"(lerobot_pi0, lerobot_pi05, lerobot_smolvla) do")
     return make_config(cfg.policy, state_dim=suite.state_dim, action_dim=suite.action_dim,
                        size=cfg.policy_size, chunk_size=cfg.chunk_size,
                        n_action_steps=cfg.n_action_steps, image_keys=image_keys,
@@ -131,7 +137,8 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
                                  cfg.weight_decay, cfg.grad_clip)
         snapshot = directory / "snapshot.pt"
         result = train_stage(ctx, Method(), settings, generator(seed, "foundation"), log,
-                             snapshots=_snapshots(snapshot, cfg, seed))
+                             snapshots=_snapshots(snapshot, cfg, seed),
+                             progress=f"foundation seed {seed}" if cfg.progress else "")
         final_loss = result.final_loss
         save_checkpoint(weights, {"policy": policy.state_dict(), "final_loss": final_loss,
                                   "config": cfg.as_dict()})

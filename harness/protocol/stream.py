@@ -143,8 +143,10 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
 
         watch = StageWatch(cfg, policy, method, evaluator, data, seed, tasks, theta0,
                            stages[-1], log)
+        shown = f"{label} seed {seed}: stage {stage}/{k} ({name})" if cfg.progress else ""
         result = train_stage(context(stage, name, data.combined(tasks)), method, settings,
-                             generator(seed, "stage", stage), log, after_step=watch)
+                             generator(seed, "stage", stage), log, after_step=watch,
+                             progress=shown)
         observed = list(dict.fromkeys(observed + observed_needs(method, policy, tasks)))
         record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, name, method)
         record.train_loss = result.final_loss

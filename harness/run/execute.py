@@ -81,6 +81,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
             children.append(child)
             jobs.append(Job(variant.cfg, variant.spec, variant.params, variant.point,
                             variant.label, seed, key, child, tracking, slots.eval_workers))
+        if slots.parallel > 1:  # jobs sharing one terminal: progress as lines, not bars
+            os.environ["RETAIN_PROGRESS"] = "lines"
         executor = make_executor(cfg, slots, suite, data)
         try:
             foundations = [FoundationJob(cfg, seed, tracking, slots.eval_workers)

@@ -17,6 +17,7 @@ is [B, H, noise_dim] (`policies.base.noise_shape`); the suite's A dimensions com
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import logging
@@ -336,6 +337,12 @@ class LeRobotPolicy(nn.Module):
         return post(actions).to(self.device)
 
     # -- a checkpoint folder ----------------------------------------------------------------
+
+    def load_checkpoint_weights(self, path: str) -> None:
+        """Another checkpoint of this architecture (a fine-tune of this one) into this policy:
+        its weights and its processors' statistics, loaded and checked as `policy_path` is."""
+        other = type(self)(dataclasses.replace(self.config, path=path))
+        self.load_state_dict(other.state_dict())
 
     def save_folder(self, folder: str | Path) -> Path:
         """This policy as one checkpoint folder that `policy_path=` loads (and LeRobot reads):
