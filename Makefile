@@ -43,7 +43,7 @@ venv: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m harness bench $(call quote,$(OVERRIDES))
 
-REPORT_ARGS := $(filter EXPERIMENT=% BENCH=% PROFILE=% results_dir=% log_run=%,$(OVERRIDES))
+REPORT_ARGS := $(filter EXPERIMENT=% BENCH=% PROFILE=% results_dir=% log_run=% open=%,$(OVERRIDES))
 REPORT = $(PY) -m harness.report $(call quote,$(REPORT_ARGS))
 
 # every method on the same foundation, then the report: make compare BENCH=mw-quick SEEDS=3
@@ -61,7 +61,8 @@ sweep: $(STAMP)
 study: $(STAMP)
 	$(PY) -m harness study $(call quote,$(OVERRIDES))
 
-# tables and plots rebuilt from the MLflow store: make report [EXPERIMENT=mw-quick]
+# tables, plots and the HTML page (report.html, with the rollout videos) rebuilt from the MLflow
+# store: make report [EXPERIMENT=mw-quick] [open=1: open the page in the browser]
 report: $(STAMP)
 	$(REPORT)
 

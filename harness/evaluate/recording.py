@@ -18,6 +18,8 @@ from harness.common.atomic import write_text
 from harness.config.benchmark import BenchConfig
 
 INDEX = "stage{stage}.json"  # a stage's videos, listed in its run's videos/ folder
+VIDEO_VERSION = 1  # bump when a video's frames change (the caption, the encoding): the cached
+# stage-0 videos are then made anew
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,8 @@ class VideoSettings:
 
     def key(self) -> str:
         """What a stage-0 video depends on besides the foundation and its evaluation."""
-        blob = json.dumps([sorted(self.tasks), self.episodes, self.size, self.camera, self.fps])
+        blob = json.dumps([VIDEO_VERSION, sorted(self.tasks), self.episodes, self.size,
+                           self.camera, self.fps])
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 

@@ -45,7 +45,7 @@ def caption_lines(instruction: str, stage: int, step: int, steps: int, success: 
     """The instruction (wrapped to two lines), then the stage and the step, or at the episode's
     end its outcome in colour."""
     chars = max(12, int(width / (max(9, width // 18) * 0.55)))
-    wrapped = (textwrap.wrap(instruction, chars)[:2] or [""])
+    wrapped = (textwrap.wrap(instruction, chars)[:2] + ["", ""])[:2]  # one bar height for all
     if step < steps:
         return [(line, WHITE) for line in wrapped] + [(f"stage {stage}, step {step}", GREY)]
     outcome = f"stage {stage}, " + ("success" if success else "failure")

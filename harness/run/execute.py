@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
@@ -105,6 +106,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
         print(f"  MLflow: {tracker.uri} (experiment {cfg.name!r}); `make ui` to browse")
         print(f"[retain] {len(jobs)} jobs in {_duration(time.time() - start)} wall time, "
               f"{usage.text()}", flush=True)
+        if cfg.videos:  # the videos are for watching: the page that shows them, built now
+            print(f"  report page with the videos: {report_page(cfg)}", flush=True)
         status = "FINISHED"
         return 0
     except KeyboardInterrupt:
@@ -135,6 +138,16 @@ class Progress:
         left = elapsed / self.ran * (self.to_run - self.ran)
         return (f"{self.done}/{self.total}",
                 f"{_duration(elapsed)} elapsed, about {_duration(left)} left")
+
+
+def report_page(cfg: BenchConfig) -> Path:
+    """The experiment's report (`make report`), built from MLflow; its HTML page's path."""
+    from harness.report.build import ReportSettings, build_report
+    from harness.report.page import PAGE
+
+    settings = ReportSettings(experiment=cfg.name, results_dir=cfg.results_dir, log_run=False)
+    build_report(settings)
+    return (settings.out_dir / PAGE).resolve()
 
 
 def _duration(seconds: float) -> str:
