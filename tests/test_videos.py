@@ -16,7 +16,7 @@ from harness.evaluate.videos import caption, caption_lines, encode
 from harness.report.page import RowVideos, write_page
 from suites import get_suite
 from suites.base import AGENTVIEW, SuiteError
-from tests.test_batched_eval import ReachController
+from tests.test_batched_eval import BatchSizeReach, ReachController
 
 TASKS = ["reach-v3", "push-v3"]
 SETTINGS = EvalSettings(episodes=2, max_episode_steps=24, n_action_steps=4, envs_per_task=2)
@@ -55,16 +55,28 @@ def test_recording_keeps_every_step_and_changes_no_episode():
     assert not np.array_equal(push[0], push[-1])
 
 
-@pytest.mark.slow  # 15 s: worker processes start
-def test_central_workers_record_the_same_states_as_the_in_process_rollout():
-    record = {("reach-v3", 0)}
-    local = _evaluate(record, workers=1)
-    # central: the policy here, the simulators (and their states) in two worker processes
-    with Evaluator(get_suite("metaworld"), replace(SETTINGS, envs_per_task=1), workers=2,
+@pytest.mark.slow  # 25 s: worker processes start
+def test_worker_processes_record_the_same_states_as_the_in_process_rollout():
+    record = {("reach-v3", 0), ("push-v3", 1)}
+    suite = get_suite("metaworld")
+    with Evaluator(suite, SETTINGS, workers=1) as evaluator:
+        local = evaluator.evaluate(BatchSizeReach(), TASKS, _instructions(), 5, record=record)
+    # per-worker policies (the CPU default): whole shards, and their states, in two processes
+    with Evaluator(suite, SETTINGS, workers=2) as evaluator:
+        assert evaluator.layout(BatchSizeReach()) == "per-worker"
+        shards = evaluator.evaluate(BatchSizeReach(), TASKS, _instructions(), 5, record=record)
+    # one central policy: the simulators in the workers, stepped from here
+    with Evaluator(suite, replace(SETTINGS, envs_per_task=1), workers=2,
                    central_policy=True) as evaluator:
         central = evaluator.evaluate(ReachController(), TASKS, _instructions(), 5, record=record)
-    (key, states), = local["reach-v3"].recordings.items()
-    assert np.array_equal(central["reach-v3"].recordings[key], states)
+    with Evaluator(suite, replace(SETTINGS, envs_per_task=2), workers=1) as evaluator:
+        central_local = evaluator.evaluate(ReachController(), TASKS, _instructions(), 5,
+                                           record=record)
+    for ours, theirs in ((shards, local), (central, central_local)):
+        assert _outcomes(ours) == _outcomes(theirs)
+        for task in TASKS:
+            (key, states), = theirs[task].recordings.items()
+            assert np.array_equal(ours[task].recordings[key], states)
 
 
 @pytest.mark.parametrize("suite_name", [
@@ -99,7 +111,8 @@ def test_an_unknown_camera_is_one_line_naming_the_valid_ones():
 
 
 def test_video_settings_are_validated_in_one_line():
-    with pytest.raises(RetainError, match=r"bad value 3 for video_episodes: expected an integer in \[1, eval_episodes=2\]"):
+    with pytest.raises(RetainError, match=r"bad value 3 for video_episodes: expected an "
+                                          r"integer in \[1, eval_episodes=2\]"):
         resolve(["PROFILE=tiny", "videos=true", "video_episodes=3"])
     with pytest.raises(RetainError, match="'no-task' in video_tasks: expected tasks of mw-quick"):
         resolve(["PROFILE=tiny", "videos=true", "video_tasks=no-task"])
