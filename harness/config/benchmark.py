@@ -122,7 +122,9 @@ class BenchConfig:
     video_tasks: list[str] = field(default_factory=list)  # []: every task
     video_episodes: Annotated[int, Ge(1), AtMost("eval_episodes")] = 1
     video_size: Annotated[int, Interval(ge=32, le=1024), doc("pixels, square")] = 224
-    video_camera: str = ""  # a camera of the suite's scenes; "": its view of the workspace
+    # a camera of the suite's scenes (checked where the first frame is drawn: the scene names
+    # them); "": the suite's view of the workspace (Meta-World corner, LIBERO agentview)
+    video_camera: Annotated[str, doc('"": the suite\'s view of the workspace')] = ""
     video_fps: Annotated[int, Interval(ge=1, le=60)] = 20
 
     def stream_stages(self) -> list[list[str]]:
