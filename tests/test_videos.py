@@ -2,6 +2,7 @@
 redraw the very images the env observed, the videos are H.264 MP4s that decode to the frames
 drawn, and the report page holds them task by stage, method beside method."""
 
+import functools
 from dataclasses import replace
 
 import av
@@ -135,7 +136,8 @@ def test_which_episodes_each_stage_records():
     assert chosen.key() != settings.key()
 
 
-def _frames(n=6, size=48):
+@functools.cache
+def _frames(n=4, size=32):
     env = get_suite("metaworld").make_env("reach-v3")
     try:
         env.reset(1)
@@ -168,7 +170,7 @@ def test_a_video_decodes_to_the_frames_drawn_and_is_deterministic(tmp_path):
 
 
 def test_the_page_shows_stage_zero_once_and_every_method_after(tmp_path):
-    frames = _frames(n=3, size=32)
+    frames = _frames()
     rows = []
     for label, success in (("sft", False), ("consft", True)):
         folder = tmp_path / label
@@ -191,3 +193,14 @@ def test_the_page_shows_stage_zero_once_and_every_method_after(tmp_path):
     assert text.count("data:video/mp4;base64,") == 5 and "src=\"stage" not in text
     assert "after the last stage" in text and "after its own stage" in text
     assert text.index(">sft, ep 0") < text.index(">consft, ep 0")  # the rows' order
+
+
+@pytest.mark.slow  # 13 s: the plan's checks before it
+def test_a_bench_with_a_camera_the_scenes_lack_stops_before_any_work(tmp_path, capsys):
+    from harness.run.cli import main
+
+    assert main(["bench", "PROFILE=tiny", f"results_dir={tmp_path}/results",
+                 f"cache_dir={tmp_path}/cache", "videos=true", "video_camera=nope"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: unknown video_camera 'nope' for suite metaworld; valid:")
+    assert not (tmp_path / "cache").exists()  # no demo made, no foundation trained

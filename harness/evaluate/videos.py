@@ -67,6 +67,18 @@ def encode(frames: list[np.ndarray], path: Path, fps: int) -> None:
                 out.mux(packet)
 
 
+def check_camera(suite: Suite, settings: VideoSettings) -> None:
+    """Draw one frame of the first video task now, so that a camera the scene lacks is a
+    one-line error before the run, not after its foundation is trained."""
+    task = settings.tasks[0]
+    env = suite.make_env(task, cameras=True, image_size=32)
+    try:
+        env.reset(suite.episode_keys(task, "eval", 1)[0])
+        env.render_state(env.sim_state(), settings.camera, 32)
+    finally:
+        env.close()
+
+
 class VideoWriter:
     """Turns a stage's recorded episodes into videos in `directory`, with an index per stage."""
 

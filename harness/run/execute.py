@@ -22,6 +22,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
     then the jobs on the executor. `harness bench` runs all of a plan's; a study (harness.run.study)
     only the ones not finished yet, of several plans on one benchmark merged into one."""
     from harness.data.prepare import prepare_data, short_demos_text
+    from harness.evaluate.recording import VideoSettings
+    from harness.evaluate.videos import check_camera
     from harness.run.executors import (
         available_memory_mb,
         evaluation_worker_mb,
@@ -60,7 +62,10 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
         if note:
             print(f"[retain] {note}", flush=True)
     # the data before any run: an error in it (a truncated file, a missing task) is one line
-    # and leaves no FAILED run behind in MLflow
+    # and leaves no FAILED run behind in MLflow; so is a video camera the scenes lack
+    videos = VideoSettings.of(cfg)
+    if videos is not None:
+        check_camera(suite, videos)
     make_missing_demos(cfg, suite)
     data = prepare_data(cfg, suite)
     print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
