@@ -3,7 +3,7 @@ rollout videos, task by stage, method beside method.
 
 Self-contained: the figures and the videos are inside the page as data URIs, so it opens from
 disk, from an MLflow artifact or from a mail, with nothing beside it. That makes it grow with
-the videos (mw-quick at 224 px: roughly 50-150 kB per video); the page takes one seed's videos
+the videos (a 150-step Meta-World episode at 224 px: about 55 kB); the page takes one seed's videos
 per row, its lowest seed that has them.
 """
 
