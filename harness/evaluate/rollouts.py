@@ -76,8 +76,9 @@ class TaskEvaluation:
     task: str
     successes: tuple[bool, ...]
     steps: int  # environment steps taken, for throughput figures
-    # recorded episodes: reset key -> the simulator's state at reset and after every step
-    recordings: dict[int, np.ndarray] = field(default_factory=dict)
+    # recorded episodes: reset key -> the simulator's state at reset and after every step (not
+    # part of equality: two evaluations are equal when their outcomes are)
+    recordings: dict[int, np.ndarray] = field(default_factory=dict, compare=False)
 
     @property
     def success_rate(self) -> float:
