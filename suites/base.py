@@ -66,14 +66,16 @@ class TaskEnv(ABC):
         return {}
 
     # -- videos: the state is recorded during an episode, the frames drawn from it afterwards
-    def sim_state(self) -> np.ndarray:
-        """The simulator's state now, as a flat array `render_state` draws again: cheap enough to
-        take every step of an evaluation episode (the episode itself is not changed)."""
+    def view_state(self) -> np.ndarray:
+        """What the scene looks like now, as a flat array `render_state` draws again: the
+        simulator's state and whatever else a view depends on (LIBERO's fixture poses, which it
+        writes into the model at each reset). Cheap enough to take every step of an evaluation
+        episode; the episode itself is not changed."""
         raise SuiteError(f"{type(self).__name__} cannot record its state for videos; suites "
                          "with videos: bimanual, libero, metaworld")
 
     def render_state(self, state: np.ndarray, camera: str, size: int) -> np.ndarray:
-        """A recorded `sim_state` seen from `camera` ("" for the suite's `video_camera`), as an
+        """A recorded `view_state` seen from `camera` ("" for the suite's `video_camera`), as an
         upright uint8 [size, size, 3] image. It may move this env's own state: rendering
         happens on an env of its own, built with cameras on, after the episodes."""
         raise SuiteError(f"{type(self).__name__} cannot render a state for videos; suites "

@@ -1,6 +1,6 @@
 """A recorded MuJoCo state drawn again from a named camera: the suites' side of rollout videos.
 
-An evaluation records `TaskEnv.sim_state()` every step (a copy of a few hundred floats) and the
+An evaluation records `TaskEnv.view_state()` every step (a copy of a few hundred floats) and the
 frames are drawn after it, on an env of their own: the episode never waits for a renderer, and
 a run without videos pays nothing. Two kinds of scene: our own MuJoCo models (Meta-World), drawn
 with `mujoco.Renderer` as their observations are, and robosuite's (LIBERO, bimanual), drawn with
@@ -59,16 +59,26 @@ class MujocoView:
         self._renderers.clear()
 
 
-def robosuite_state(sim) -> np.ndarray:
-    """robosuite's flattened state (time, qpos, qvel): LIBERO's `states` format."""
-    return np.asarray(sim.get_state().flatten())
+def robosuite_state(sim, bodies: bool = False) -> np.ndarray:
+    """robosuite's flattened state (time, qpos, qvel: LIBERO's `states` format); with `bodies`,
+    every body's pose in the model after it (LIBERO writes its fixtures' there at each reset)."""
+    state = np.asarray(sim.get_state().flatten())
+    if not bodies:
+        return state
+    model = sim.model._model
+    return np.concatenate([state, model.body_pos.ravel(), model.body_quat.ravel()])
 
 
 def robosuite_draw(sim, state: np.ndarray, camera: str, size: int, suite: str) -> np.ndarray:
     """`state` from `camera` with robosuite's offscreen renderer (the env must have been built
     with cameras on), upright."""
-    check_camera(sim.model._model, camera, suite)
-    sim.set_state_from_flattened(np.asarray(state, dtype=np.float64))
+    model = sim.model._model
+    check_camera(model, camera, suite)
+    state, n = np.asarray(state, dtype=np.float64), 1 + model.nq + model.nv
+    if len(state) > n:  # the bodies' poses too (robosuite_state's `bodies`)
+        model.body_pos[:] = state[n:n + 3 * model.nbody].reshape(-1, 3)
+        model.body_quat[:] = state[n + 3 * model.nbody:].reshape(-1, 4)
+    sim.set_state_from_flattened(state[:n])
     sim.forward()
     # robosuite renders into whichever GL context is current: another env's renderer in this
     # process (a Meta-World view, another task's env) may have made its own current

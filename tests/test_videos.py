@@ -50,7 +50,7 @@ def test_recording_keeps_every_step_and_changes_no_episode():
     env = suite.make_env("push-v3")
     try:
         env.reset(keys["push-v3"][0])
-        assert np.array_equal(push[0], env.sim_state())  # the first state is the reset's
+        assert np.array_equal(push[0], env.view_state())  # the first state is the reset's
     finally:
         env.close()
     assert not np.array_equal(push[0], push[-1])
@@ -81,24 +81,31 @@ def test_worker_processes_record_the_same_states_as_the_in_process_rollout():
 
 
 @pytest.mark.parametrize("suite_name", [
-    "metaworld", pytest.param("bimanual", marks=pytest.mark.slow)])  # robosuite: 13 s
+    "metaworld", pytest.param("bimanual", marks=pytest.mark.slow),  # robosuite: 13 s
+    pytest.param("libero", marks=pytest.mark.slow)])  # 30 s
 def test_a_recorded_state_redraws_the_image_the_env_observed(suite_name):
-    """render_state at the observation's camera and size gives the observation itself: the
-    state holds everything a view depends on."""
+    """render_state at the observation's camera and size gives the observation itself, after
+    the env has been reset to another episode: the state holds everything a view depends on
+    (on LIBERO, the fixtures' poses too)."""
     suite = get_suite(suite_name)
     task = suite.task_names()[0]
+    keys = suite.episode_keys(task, "eval", 2)
     env = suite.make_env(task, cameras=True, image_size=64)
     try:
-        env.reset(3)
+        env.reset(keys[0])
         for _ in range(3):
-            result = env.step(np.full(suite.action_dim, 0.5, np.float32))
-        state, seen = env.sim_state(), result.obs[AGENTVIEW]
-        env.reset(4)  # somewhere else entirely
+            result = env.step(np.full(suite.action_dim, 0.3, np.float32))
+        state, seen = env.view_state(), result.obs[AGENTVIEW]
+        env.reset(keys[1])  # another episode: other positions, on LIBERO other fixture poses
         drawn = env.render_state(state, "", 64)
     finally:
         env.close()
+    if suite_name == "libero":  # its observations keep robosuite's bottom-row-first images
+        seen = seen[::-1]
     assert drawn.shape == (64, 64, 3) and drawn.dtype == np.uint8
-    assert np.abs(drawn.astype(int) - seen).mean() < 1.0, "not the observed view"
+    # LIBERO: a fresh draw of the very same state is 0.18/255 off its observation (measured);
+    # without the fixture poses a restored state was 2.8/255 off
+    assert np.abs(drawn.astype(int) - seen).mean() < 0.5, "not the observed view"
 
 
 def test_an_unknown_camera_is_one_line_naming_the_valid_ones():
@@ -106,7 +113,7 @@ def test_an_unknown_camera_is_one_line_naming_the_valid_ones():
     try:
         env.reset(0)
         with pytest.raises(SuiteError, match=r"unknown video_camera 'nope' .* valid: .*corner"):
-            env.render_state(env.sim_state(), "nope", 32)
+            env.render_state(env.view_state(), "nope", 32)
     finally:
         env.close()
 
@@ -141,10 +148,10 @@ def _frames(n=4, size=32):
     env = get_suite("metaworld").make_env("reach-v3")
     try:
         env.reset(1)
-        states = [env.sim_state()]
+        states = [env.view_state()]
         for _ in range(n - 1):
             env.step(env.expert_action())
-            states.append(env.sim_state())
+            states.append(env.view_state())
         return [caption(env.render_state(s, "", size),
                         caption_lines("reach the goal", 0, t, n - 1, True, size))
                 for t, s in enumerate(states)]

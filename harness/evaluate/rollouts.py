@@ -123,7 +123,7 @@ class LocalSimulators:
 
     def states(self, items: list[tuple[int, None]]) -> list[np.ndarray]:
         """(slot, None) -> that slot's simulator state now (a recorded episode's)."""
-        return [self.envs[i].sim_state() for i, _ in items]
+        return [self.envs[i].view_state() for i, _ in items]
 
 
 @dataclass

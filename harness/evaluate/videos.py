@@ -74,7 +74,7 @@ def check_camera(suite: Suite, settings: VideoSettings) -> None:
     env = suite.make_env(task, cameras=True, image_size=32)
     try:
         env.reset(suite.episode_keys(task, "eval", 1)[0])
-        env.render_state(env.sim_state(), settings.camera, 32)
+        env.render_state(env.view_state(), settings.camera, 32)
     finally:
         env.close()
 

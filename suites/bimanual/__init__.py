@@ -88,7 +88,7 @@ class BimanualEnv(TaskEnv):
         assert self._script is not None, "reset() first"
         return self._script.act(self._world)
 
-    def sim_state(self) -> np.ndarray:
+    def view_state(self) -> np.ndarray:
         return robosuite_state(self._env.sim)
 
     def render_state(self, state: np.ndarray, camera: str, size: int) -> np.ndarray:

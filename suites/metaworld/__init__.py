@@ -167,7 +167,7 @@ class MetaWorldEnv(TaskEnv):
         assert self._obs is not None, "reset() first"
         return np.clip(self._expert.get_action(self._obs), -1.0, 1.0).astype(np.float32)
 
-    def sim_state(self) -> np.ndarray:
+    def view_state(self) -> np.ndarray:
         from suites.views import mujoco_state
 
         return mujoco_state(self._env.model, self._env.data)
