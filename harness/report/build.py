@@ -68,7 +68,8 @@ def build_report(settings: ReportSettings) -> list[Path]:
     summaries = [summarize(row, [m.key for m in columns]) for row in rows]
     paper = paper_table(rows, columns) if columns else None
     files = write_report(settings.out_dir, summaries, settings.experiment, superseded, paper)
-    markdown = [f for f in files if f.name in ("summary.md", "paper_table.md")]
+    markdown = [settings.out_dir / n for n in ("summary.md", "paper_table.md") if
+                settings.out_dir / n in files]  # the summary first
     first = rows[0].runs[0]
     with tempfile.TemporaryDirectory() as tmp:
         page = write_page(settings.out_dir, settings.experiment, markdown, first.foundation_tasks,

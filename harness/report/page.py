@@ -56,7 +56,8 @@ def write_page(out: Path, benchmark: str, markdown_files: list[Path],
                videos: list[RowVideos]) -> Path:
     """`out/report.html` from the report's Markdown files (figures embedded) and the videos."""
     md = MarkdownIt("commonmark").enable("table")
-    parts = [_embed_images(md.render(path.read_text()), path.parent) for path in markdown_files]
+    parts = [f"<section id=\"{path.stem}\">{_embed(md.render(path.read_text()), path.parent)}"
+             "</section>" for path in markdown_files]
     if any(v.entries for v in videos):
         parts.append(video_grid(foundation_tasks, stream_tasks, videos))
     page = (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
@@ -118,7 +119,7 @@ def _figure(path: Path, name: str, entry: VideoEntry) -> str:
             f"({entry.steps} steps)</figcaption></figure>")
 
 
-def _embed_images(text: str, folder: Path) -> str:
+def _embed(text: str, folder: Path) -> str:
     """Every `<img src="x.png">` of the report folder as a data URI; links to the report's
     Markdown files (paper_table.md) to the page's own sections."""
     def embed(found: re.Match) -> str:
@@ -127,4 +128,5 @@ def _embed_images(text: str, folder: Path) -> str:
             return found.group(0)
         return f'src="data:image/png;base64,{base64.b64encode(path.read_bytes()).decode()}"'
 
+    text = re.sub(r'href="([^"/:]+)\.md"', r'href="#\1"', text)
     return re.sub(r'src="([^"/:]+\.png)"', embed, text)
