@@ -116,8 +116,10 @@ lerobot-export: $(STAMP)
 libero-check: $(STAMP)
 	$(PY) -m suites.libero.build_all $(LIBERO_SUITES)
 
-# the suite without its slow checks (pytest -m slow: reruns, kills and resumes of whole runs, and
-# statistics over many scenes; about 5 minutes more), which test-slow runs; CI runs both
+# the suite without its slow checks (pytest -m slow: reruns, kills and resumes of whole runs,
+# statistics over many scenes, and the report page's videos played in headless Chromium, which
+# its test installs with apt-get where it is missing; about 5 minutes more), which test-slow
+# runs; CI runs both
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings -m "not slow" tests
 
