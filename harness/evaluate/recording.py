@@ -25,7 +25,6 @@ VIDEO_VERSION = 1  # bump when a video's frames change (the caption, the encodin
 @dataclass(frozen=True)
 class VideoSettings:
     tasks: tuple[str, ...]  # the tasks with videos, in the benchmark's order
-    foundation_tasks: tuple[str, ...]
     stages: tuple[tuple[str, ...], ...]  # the stream tasks of stages 1..k
     episodes: int  # per task: its first N evaluation episodes
     size: int  # pixels, square
@@ -38,7 +37,7 @@ class VideoSettings:
         if not cfg.videos:
             return None
         chosen = set(cfg.video_tasks or cfg.all_tasks())
-        return cls(tuple(t for t in cfg.all_tasks() if t in chosen), tuple(cfg.foundation_tasks),
+        return cls(tuple(t for t in cfg.all_tasks() if t in chosen),
                    tuple(tuple(s) for s in cfg.stream_stages()), cfg.video_episodes,
                    cfg.video_size, cfg.video_camera, cfg.video_fps)
 

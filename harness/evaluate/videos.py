@@ -9,6 +9,7 @@ browser test checks it). x264 is deterministic: the same states give the same by
 
 from __future__ import annotations
 
+import functools
 import textwrap
 from pathlib import Path
 
@@ -24,13 +25,22 @@ from suites import Suite
 GREEN, RED, WHITE, GREY = (80, 220, 100), (240, 80, 70), (255, 255, 255), (170, 170, 170)
 
 
+def font_px(width: int) -> int:
+    """The caption's text height: readable at 64 px, a line of about 30 characters."""
+    return max(9, width // 18)
+
+
+@functools.cache
+def _font(size: int) -> ImageFont.FreeTypeFont:
+    return ImageFont.load_default(size=size)
+
+
 def caption(frame: np.ndarray, lines: list[tuple[str, tuple[int, int, int]]]) -> np.ndarray:
     """`frame` with a black bar below it holding `lines` (text, colour); even height and width,
     as yuv420p needs."""
     height, width = frame.shape[:2]
-    font_px = max(9, width // 18)
-    font = ImageFont.load_default(size=font_px)
-    line_px = font_px + 3
+    font = _font(font_px(width))
+    line_px = font_px(width) + 3
     bar = len(lines) * line_px + 4
     out = Image.new("RGB", (width + width % 2, height + bar + (height + bar) % 2))
     out.paste(Image.fromarray(frame), (0, 0))
@@ -44,7 +54,7 @@ def caption_lines(instruction: str, stage: int, step: int, steps: int, success: 
                   width: int) -> list[tuple[str, tuple[int, int, int]]]:
     """The instruction (wrapped to two lines), then the stage and the step, or at the episode's
     end its outcome in colour."""
-    chars = max(12, int(width / (max(9, width // 18) * 0.55)))
+    chars = max(12, int(width / (font_px(width) * 0.55)))  # a glyph is about 0.55 em wide
     wrapped = (textwrap.wrap(instruction, chars)[:2] + ["", ""])[:2]  # one bar height for all
     if step < steps:
         return [(line, WHITE) for line in wrapped] + [(f"stage {stage}, step {step}", GREY)]
