@@ -15,8 +15,10 @@ from harness.common.seeding import derive_seed, generator
 from harness.config.benchmark import BenchConfig
 from harness.data.lerobot.checkpoint import checkpoint_features
 from harness.data.prepare import BenchmarkData, demo_spec
+from harness.evaluate.recording import VideoSettings
 from harness.evaluate.rollouts import Evaluator
 from harness.evaluate.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
+from harness.evaluate.videos import VideoWriter
 from harness.train.trainer import Snapshots, TrainSettings, train_stage
 from methods import Method, TaskContext
 from policies import get_policy, make_config, policy_for_config
@@ -38,6 +40,7 @@ class Foundation:
     policy_state: dict[str, torch.Tensor]
     final_loss: float
     stage0: StageRecord
+    videos: Path | None = None  # stage 0's videos (in the cache, shared by every method)
 
 
 def check_takes_a_path(cfg: BenchConfig) -> None:
@@ -143,13 +146,20 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
         save_checkpoint(weights, {"policy": policy.state_dict(), "final_loss": final_loss,
                                   "config": cfg.as_dict()})
         snapshot.unlink(missing_ok=True)
-    if stage0_path.exists():
-        stage0 = StageRecord(**load_checkpoint(stage0_path))
-    else:
-        stage0 = evaluate_stage(policy, evaluator, cfg, data, seed, 0, "foundation")
-        stage0.train_loss = final_loss
-        save_checkpoint(stage0_path, stage0.as_dict())
-    return Foundation(key, policy.state_dict(), final_loss, stage0)
+    videos = VideoSettings.of(cfg)
+    videos_dir = directory / f"videos-{stage0_key(cfg, suite)}-{videos.key()}" if videos else None
+    missing_videos = videos_dir is not None and not any(videos_dir.glob("stage0.json"))
+    stage0 = StageRecord(**load_checkpoint(stage0_path)) if stage0_path.exists() else None
+    if stage0 is None or missing_videos:  # a cached record without its videos: evaluated again,
+        # the same episodes (a fixed policy, seeded noise), now recorded
+        writer = VideoWriter(suite, videos, videos_dir, cfg.eval_episodes) if videos else None
+        evaluated = evaluate_stage(policy, evaluator, cfg, data, seed, 0, "foundation",
+                                   videos=writer)
+        if stage0 is None:
+            stage0 = evaluated
+            stage0.train_loss = final_loss
+            save_checkpoint(stage0_path, stage0.as_dict())
+    return Foundation(key, policy.state_dict(), final_loss, stage0, videos_dir)
 
 
 def _snapshots(path: Path, cfg: BenchConfig, seed: int) -> Snapshots:

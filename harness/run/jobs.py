@@ -194,6 +194,8 @@ def run_job(job: Job, evaluator=None, data=None):
         paths = write_run_outputs(cfg, result, provenance)
         for path in paths.values():
             tracker.log_artifact(child, path)
+        if cfg.videos and (result.run_dir / "videos").is_dir():
+            tracker.log_artifacts(child, result.run_dir / "videos", "videos")
         status = "FINISHED"
         return result
     finally:

@@ -45,6 +45,7 @@ _ACTION_DIM = 4
 # observation key -> (Meta-World camera, whether its image must be turned by 180 degrees)
 _CAMERAS = {AGENTVIEW: ("corner", True), EYE_IN_HAND: ("gripperPOV", False)}
 _SHADOW_MAP_SIZE = 1024
+_TURNED = {"corner", "corner2", "corner3"}  # cameras Meta-World mounts upside down
 WIDEN = 2.0  # the spatial probe's x and y ranges: this many times the task's own, same centre
 MIN_WIDENED = 0.01  # m; narrower ranges (Meta-World's +-1 mm jitter) are not widened
 PENETRATION = 0.005  # m: how much deeper than in the task's own states a probe state may press
@@ -74,6 +75,7 @@ class MetaWorldEnv(TaskEnv):
         self._obs: np.ndarray | None = None
         self._allowance: dict | None = None  # the spatial probe's, made at its first reset
         self._renderer = None
+        self._view = None  # draws recorded states for videos (render_state)
         if cameras:
             import mujoco
 
@@ -165,9 +167,27 @@ class MetaWorldEnv(TaskEnv):
         assert self._obs is not None, "reset() first"
         return np.clip(self._expert.get_action(self._obs), -1.0, 1.0).astype(np.float32)
 
+    def view_state(self) -> np.ndarray:
+        from suites.views import mujoco_state
+
+        return mujoco_state(self._env.model, self._env.data)
+
+    def render_state(self, state: np.ndarray, camera: str, size: int) -> np.ndarray:
+        from suites.views import MujocoView, check_camera
+
+        camera = check_camera(self._env.model, camera or _CAMERAS[AGENTVIEW][0], "metaworld")
+        if self._view is None:
+            model = self._env.model
+            model.vis.quality.shadowsize = min(model.vis.quality.shadowsize, _SHADOW_MAP_SIZE)
+            self._view = MujocoView(model, self._env.data)
+        image = self._view.draw(state, camera, size)
+        return np.ascontiguousarray(image[::-1, ::-1]) if camera in _TURNED else image
+
     def close(self) -> None:
         if self._renderer is not None:
             self._renderer.close()
+        if self._view is not None:
+            self._view.close()
         self._env.close()
 
 
@@ -191,6 +211,7 @@ def widened_box(low: np.ndarray, high: np.ndarray, hand_low: np.ndarray, hand_hi
 
 @register_suite("metaworld")
 class MetaWorldSuite(Suite):
+    video_camera = _CAMERAS[AGENTVIEW][0]
     state_dim = _STATE_DIM
     action_dim = _ACTION_DIM
     max_episode_steps = 500  # Meta-World's own limit; benchmarks usually set less
