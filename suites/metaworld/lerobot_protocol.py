@@ -11,6 +11,7 @@ own env class).
 - Images: "corner2" from Meta-World's own renderer, flipped on both axes as LeRobot flips it,
   at Meta-World's 480 px (LeRobot passes no size), as LeRobot's `observation.image`; the wrist
   camera ("gripperPOV", unflipped) is rendered as well, for policies that read two.
+- Actions reach Meta-World as lerobot-eval hands them over: float32, unclipped.
 - 500 steps (MT1's max_path_length, which lerobot-eval reads as `_max_episode_steps`), ending at
   Meta-World's `success`.
 - Instructions: LeRobot's TASK_DESCRIPTIONS (its envs/metaworld_config.json), not Retain's.
@@ -30,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from suites import register_suite
-from suites.base import AGENTVIEW, EYE_IN_HAND, Observation, TaskEnv, is_spatial
+from suites.base import AGENTVIEW, EYE_IN_HAND, Observation, StepResult, TaskEnv, is_spatial
 from suites.lerobot_protocol import LeRobotProtocol, LeRobotProtocolSuite
 from suites.metaworld import MetaWorldEnv, MetaWorldSuite, _expert_classes
 
@@ -91,6 +92,13 @@ class MetaWorldLeRobotEnv(MetaWorldEnv):
         env.seed(int(seed))
         raw, _ = env.reset(seed=int(seed))  # as LeRobot's MetaworldEnv.reset
         return self._observation(raw)
+
+    def step(self, action: np.ndarray) -> StepResult:
+        """The action as lerobot-eval hands it over: the policy's float32, unclipped (Meta-World
+        clips the hand's move in float32 itself, and MuJoCo's control range bounds the
+        gripper; Retain's own suite clips in float64 first, which moves the hand by other bits)."""
+        raw, _reward, _term, _trunc, info = self._env.step(np.asarray(action, dtype=np.float32))
+        return StepResult(self._observation(raw), bool(info["success"]))
 
     def _observation(self, raw: np.ndarray) -> Observation:
         self._obs = raw

@@ -1,0 +1,154 @@
+"""lerobot-eval parity (issue 61): suites libero-lerobot and metaworld-lerobot give a LeRobot
+policy what lerobot-eval gives it. The oracle is LeRobot's own env classes and processors
+(tests/lerobot_oracle.py): the same tiny policy, task, episode and noise, rolled out both ways,
+must see equal observations and return equal actions, step for step, to the bit."""
+
+import numpy as np
+import pytest
+import torch
+
+from policies import get_policy
+from suites import get_suite
+from suites.base import AGENTVIEW, CAMERA_KEYS
+
+PX = 32  # the policies' own resolution (LeRobot's processors resize whatever the env renders)
+LIBERO_PX = 64  # LIBERO's render size in the oracle (lerobot-eval renders 360; costs the same)
+STEPS = 50
+
+
+def build(kind: str, suite, task: str):
+    """A tiny LeRobot policy with the suite's LeRobot feature names, fixed weights and wide
+    action statistics (so some actions leave [-1, 1] and the env's clipping is exercised)."""
+    features = dict(suite.lerobot.features)
+    cls = get_policy(kind)
+    config = cls.Config(state_dim=suite.state_dim, action_dim=suite.action_dim, size="tiny",
+                        chunk_size=6, n_action_steps=4, image_size=PX,
+                        image_keys=tuple(k for k in CAMERA_KEYS if k in features),
+                        instructions=(suite.instruction(task),),
+                        features=tuple(features.items()))
+    torch.manual_seed(0)
+    policy = cls(config)
+    g = torch.Generator().manual_seed(1)
+    policy.state_norm.fit(torch.randn(64, suite.state_dim, generator=g) * 0.3)
+    policy.action_norm.fit(torch.randn(64, suite.action_dim, generator=g) * 1.5)
+    return policy
+
+
+# ---- the conventions, against LeRobot's own tables (make test) ------------------------------
+
+def test_libero_step_limits_are_lerobots_and_openpis_stay_in_suite_libero():
+    from suites.libero.install import point_libero_at_config
+
+    point_libero_at_config()
+    from lerobot.envs.libero import TASK_SUITE_MAX_STEPS
+
+    from suites.libero.lerobot_protocol import LEROBOT_MAX_STEPS
+    from suites.libero.tasks import MAX_STEPS, suite_tasks
+
+    assert LEROBOT_MAX_STEPS == TASK_SUITE_MAX_STEPS
+    lerobot, libero = get_suite("libero-lerobot"), get_suite("libero")
+    for name, limit in TASK_SUITE_MAX_STEPS.items():
+        task = suite_tasks(name)[0]
+        assert lerobot.max_steps(task) == limit
+        assert libero.max_steps(task) == MAX_STEPS[name]
+    assert libero.max_steps(suite_tasks("libero_spatial")[0]) == 220  # openpi's, unchanged
+    assert lerobot.episode_keys(suite_tasks("libero_goal")[0], "eval", 3) == [0, 1, 2]
+
+
+def test_metaworld_instructions_seeds_and_limit_are_lerobots():
+    from lerobot.configs.eval import EvalPipelineConfig
+    from lerobot.envs.metaworld import TASK_DESCRIPTIONS
+
+    suite, retain = get_suite("metaworld-lerobot"), get_suite("metaworld")
+    assert len(suite.task_names()) == 50
+    for task in suite.task_names():
+        assert suite.instruction(task) == TASK_DESCRIPTIONS[task]
+        assert suite.max_steps(task) == 500
+    assert retain.instruction("assembly-v3") != suite.instruction("assembly-v3")
+    seed = EvalPipelineConfig.__dataclass_fields__["seed"].default  # lerobot-eval's --seed
+    assert suite.episode_keys("door-open-v3", "eval", 3) == [seed, seed + 1, seed + 2]
+
+
+def test_the_protocols_image_sizes_are_lerobot_evals():
+    from lerobot.envs.configs import LiberoEnv
+
+    assert get_suite("libero-lerobot").lerobot.image_size == LiberoEnv().observation_height
+    from lerobot.envs.metaworld import MetaworldEnv
+
+    assert get_suite("metaworld-lerobot").lerobot.image_size == MetaworldEnv("door-open-v3").observation_height
+
+
+# ---- the oracle (slow: LIBERO renders in software) ------------------------------------------
+
+LIBERO_CASES = [("libero_spatial", 0), ("libero_goal", 1)]
+METAWORLD_CASES = ["door-open-v3", "button-press-v3"]
+KINDS = ["lerobot_smolvla", "lerobot_pi05"]
+
+
+def libero_oracle(kind: str, suite_name: str, task_index: int, steps: int = STEPS):
+    from suites.libero.tasks import suite_tasks
+    from tests import lerobot_oracle as oracle
+
+    suite = get_suite("libero-lerobot")
+    task = suite_tasks(suite_name)[task_index]
+    policy = build(kind, suite, task)
+    with oracle.robosuite14_names():
+        env = oracle.lerobot_libero(suite_name, task_index, LIBERO_PX)
+        theirs = oracle.lerobot_rollout(policy, env, "libero", task, key=0, seed=1000,
+                                        steps=steps, numpy_seed=0)
+    ours = oracle.retain_rollout(policy, suite, task, steps, LIBERO_PX)
+    return policy, ours, theirs
+
+
+def metaworld_oracle(kind: str, task: str, steps: int = STEPS):
+    from suites.metaworld.lerobot_protocol import LEROBOT_IMAGE_SIZE
+    from tests import lerobot_oracle as oracle
+
+    suite = get_suite("metaworld-lerobot")
+    policy = build(kind, suite, task)
+    key = suite.episode_keys(task, "eval", 1)[0]
+    theirs = oracle.lerobot_rollout(policy, oracle.lerobot_metaworld(task), "metaworld", task,
+                                    key=key, seed=key, steps=steps)
+    ours = oracle.retain_rollout(policy, suite, task, steps, LEROBOT_IMAGE_SIZE)
+    return policy, ours, theirs
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("suite_name,task_index", LIBERO_CASES)
+def test_libero_episode_is_lerobot_evals(kind, suite_name, task_index):
+    from tests.lerobot_oracle import compare
+
+    policy, ours, theirs = libero_oracle(kind, suite_name, task_index)
+    compare(policy, ours, theirs, STEPS)
+    assert any(np.abs(a).max() > 1 for a in ours.actions)  # clipping was exercised
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("task", METAWORLD_CASES)
+def test_metaworld_episode_is_lerobot_evals(kind, task):
+    from tests.lerobot_oracle import compare
+
+    policy, ours, theirs = metaworld_oracle(kind, task)
+    compare(policy, ours, theirs, STEPS)
+    assert any(np.abs(a).max() > 1 for a in ours.actions)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("broken", ["no flip", "9 wait steps", "camera corner"])
+def test_a_broken_convention_fails_the_oracle(monkeypatch, broken):
+    from tests.lerobot_oracle import compare
+
+    if broken == "no flip":
+        monkeypatch.setattr("suites.libero.lerobot_protocol.flip_images", lambda obs: obs)
+    elif broken == "9 wait steps":
+        monkeypatch.setattr("suites.libero.env.SETTLE_STEPS", 9)
+    else:
+        monkeypatch.setattr("suites.metaworld.lerobot_protocol.LEROBOT_CAMERA", "corner")
+    if broken == "camera corner":
+        policy, ours, theirs = metaworld_oracle("lerobot_smolvla", METAWORLD_CASES[0], steps=2)
+    else:
+        policy, ours, theirs = libero_oracle("lerobot_smolvla", *LIBERO_CASES[0], steps=2)
+    with pytest.raises(AssertionError, match="step 0"):
+        compare(policy, ours, theirs, 2)
