@@ -9,7 +9,7 @@ import torch
 
 from policies import get_policy
 from suites import get_suite
-from suites.base import AGENTVIEW, CAMERA_KEYS
+from suites.base import CAMERA_KEYS
 
 PX = 32  # the policies' own resolution (LeRobot's processors resize whatever the env renders)
 LIBERO_PX = 64  # LIBERO's render size in the oracle (lerobot-eval renders 360; costs the same)
