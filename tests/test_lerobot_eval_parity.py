@@ -9,6 +9,7 @@ import torch
 
 from policies import get_policy
 from suites import get_suite
+from suites.base import AGENTVIEW as AGENT
 from suites.base import CAMERA_KEYS
 
 PX = 32  # the policies' own resolution (LeRobot's processors resize whatever the env renders)
@@ -152,3 +153,35 @@ def test_a_broken_convention_fails_the_oracle(monkeypatch, broken):
         policy, ours, theirs = libero_oracle("lerobot_smolvla", *LIBERO_CASES[0], steps=2)
     with pytest.raises(AssertionError, match="step 0"):
         compare(policy, ours, theirs, 2)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_chunk_is_executed_as_select_action_queues_it_unnormalized_and_unclipped(kind):
+    """Retain's chunk (LeRobot's predict_action_chunk, then the policy's postprocessor) is the
+    n_action_steps actions select_action pops one by one through the same postprocessor, to
+    the bit, beyond [-1, 1] where the statistics put them: the env gets them as lerobot-eval
+    gives them (LIBERO's robosuite and Meta-World clip them themselves; the oracle tests hold
+    the simulators' states equal)."""
+    from policies.lerobot.modeling import fixed_draws
+    from policies.base import noise_shape
+
+    suite = get_suite("metaworld-lerobot")
+    policy = build(kind, suite, "door-open-v3")
+    g = torch.Generator().manual_seed(3)
+    batch = {"state": torch.randn(1, 4, generator=g),
+             AGENT: torch.randint(0, 256, (1, PX, PX, 3), dtype=torch.uint8, generator=g),
+             "instruction_id": torch.tensor([0])}
+    noise = torch.randn(noise_shape(policy, 1), generator=g)
+    chunk = policy.sample_actions(batch, noise=noise)[0]
+    pre, post = policy.processors()
+    model, n = policy.model, policy.config.n_action_steps
+    model.reset()
+    popped = []
+    for t in range(n + 1):
+        lr_batch = policy._lerobot_batch(batch, actions=False)
+        draws = noise if t == 0 else torch.zeros_like(noise)  # a refill draws anew
+        with torch.inference_mode(), fixed_draws(model.model, draws, torch.zeros(1)):
+            popped.append(post(model.select_action(lr_batch))[0])
+    assert torch.equal(torch.stack(popped[:n]), chunk[:n])
+    assert not torch.equal(popped[n], chunk[n])  # the queue was empty: a new chunk
+    assert chunk.abs().max() > 1  # unnormalized, not clipped
