@@ -185,3 +185,53 @@ def test_a_chunk_is_executed_as_select_action_queues_it_unnormalized_and_unclipp
     assert torch.equal(torch.stack(popped[:n]), chunk[:n])
     assert not torch.equal(popped[n], chunk[n])  # the queue was empty: a new chunk
     assert chunk.abs().max() > 1  # unnormalized, not clipped
+
+
+# ---- a checkpoint under the protocol (make test) ---------------------------------------------
+
+@pytest.fixture(scope="module")
+def libero_checkpoint(tmp_path_factory):
+    """A tiny SmolVLA with LeRobot's LIBERO features, saved as a LeRobot folder."""
+    suite = get_suite("libero-lerobot")
+    policy = build("lerobot_smolvla", suite, suite.task_names()[0])
+    return policy.save_folder(tmp_path_factory.mktemp("ckpt") / "smolvla_libero")
+
+
+def plan_settings(folder, suite_name, **settings):
+    from harness.config.benchmark import resolve
+    from harness.data.lerobot.checkpoint import checkpoint_features, checkpoint_settings, spec
+
+    spec.cache_clear()
+    cfg = resolve(["BENCH=libero-paper-lerobot", "PROFILE=tiny", "policy=lerobot_smolvla",
+                   f"suite={suite_name}", f"policy_path={folder}",
+                   *(f"{k}={v}" for k, v in settings.items())])
+    suite = get_suite(cfg.suite)
+    return checkpoint_features(cfg, suite), checkpoint_settings(cfg, suite)
+
+
+def test_lerobots_libero_names_need_no_lerobot_keys_and_render_at_lerobot_evals_size(
+        libero_checkpoint):
+    import json
+
+    from harness.common.errors import RetainError
+
+    features, settings = plan_settings(libero_checkpoint, "libero-lerobot")
+    assert features == {"state": "observation.state", "agentview_rgb": "observation.images.image",
+                        "eye_in_hand_rgb": "observation.images.image2"}
+    assert settings["image_size"] == 360  # no train_config.json: lerobot-eval's default
+    config = {"env": {"type": "libero", "task": "libero_spatial", "observation_height": 256,
+                      "observation_width": 256}}
+    (libero_checkpoint / "train_config.json").write_text(json.dumps(config))
+    try:
+        assert plan_settings(libero_checkpoint, "libero-lerobot")[1]["image_size"] == 256
+        config["env"]["type"] = "metaworld"
+        (libero_checkpoint / "train_config.json").write_text(json.dumps(config))
+        with pytest.raises(RetainError, match="trained for LeRobot's 'metaworld' env"):
+            plan_settings(libero_checkpoint, "libero-lerobot")
+    finally:
+        (libero_checkpoint / "train_config.json").unlink()
+    with pytest.raises(RetainError, match="lerobot_rotate_images=true with suite 'libero-lerobot'"):
+        plan_settings(libero_checkpoint, "libero-lerobot", lerobot_rotate_images="true")
+    # Retain's own suite keeps the checkpoint's trained size and its 8-D-state hint
+    with pytest.raises(RetainError, match="use suite=libero-proprio"):
+        plan_settings(libero_checkpoint, "libero")
