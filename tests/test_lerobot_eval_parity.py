@@ -162,8 +162,8 @@ def test_a_chunk_is_executed_as_select_action_queues_it_unnormalized_and_unclipp
     the bit, beyond [-1, 1] where the statistics put them: the env gets them as lerobot-eval
     gives them (LIBERO's robosuite and Meta-World clip them themselves; the oracle tests hold
     the simulators' states equal)."""
-    from policies.lerobot.modeling import fixed_draws
     from policies.base import noise_shape
+    from policies.lerobot.modeling import fixed_draws
 
     suite = get_suite("metaworld-lerobot")
     policy = build(kind, suite, "door-open-v3")
@@ -235,3 +235,24 @@ def test_lerobots_libero_names_need_no_lerobot_keys_and_render_at_lerobot_evals_
     # Retain's own suite keeps the checkpoint's trained size and its 8-D-state hint
     with pytest.raises(RetainError, match="use suite=libero-proprio"):
         plan_settings(libero_checkpoint, "libero")
+
+
+# LIBERO renders in software (about 0.1 s a view): the Spatial target's expert demos with two
+# cameras and the stage evaluations are minutes
+@pytest.mark.slow
+def test_libero_paper_lerobot_with_a_lerobot_checkpoint_as_the_base(libero_checkpoint, tmp_path):
+    import json
+
+    from harness.run.cli import main
+
+    args = ["bench", "BENCH=libero-paper-lerobot", "PROFILE=tiny", "METHOD=sft",
+            "policy=lerobot_smolvla", f"policy_path={libero_checkpoint}",
+            f"results_dir={tmp_path}/results", f"cache_dir={tmp_path}/cache", "progress=false",
+            "eval_workers=1", "demos_per_task=1", "eval_episodes=1", "check_episodes=1",
+            "eval_step_cap=15"]  # no lerobot_keys: the features are LeRobot's LIBERO names
+    assert main(args) == 0
+    run = next((tmp_path / "results" / "libero-paper-lerobot-tiny").glob("sft*/seed0"))
+    config = (run / "config.yaml").read_text()
+    assert "suite: libero-lerobot" in config and "image_size: 360" in config
+    stages = json.loads((run / "metrics.json").read_text())["stages"]
+    assert len(stages) == 2 and np.isnan(stages[0]["train_loss"])  # the base: not retrained
