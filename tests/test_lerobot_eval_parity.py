@@ -37,11 +37,25 @@ def build(kind: str, suite, task: str):
 
 # ---- the conventions, against LeRobot's own tables (make test) ------------------------------
 
-def test_libero_step_limits_are_lerobots_and_openpis_stay_in_suite_libero():
-    from suites.libero.install import point_libero_at_config
+def lerobot_constant(module: str, name: str):
+    """A literal of LeRobot's source (`module` as "envs/libero.py"), read without importing
+    it (importing lerobot.envs loads LIBERO's simulator and LeRobot's policies: 10 s and more)."""
+    import ast
+    import importlib.util
+    from pathlib import Path
 
-    point_libero_at_config()
-    from lerobot.envs.libero import TASK_SUITE_MAX_STEPS
+    root = importlib.util.find_spec("lerobot").submodule_search_locations[0]
+    source = (Path(root) / module).read_text()
+    for node in ast.parse(source).body:
+        target = getattr(node, "target", None) or (getattr(node, "targets", None) or [None])[0]
+        if getattr(target, "id", None) == name:
+            return ast.literal_eval(node.value)
+    raise LookupError(f"{module} has no {name}")
+
+
+def test_libero_step_limits_are_lerobots_and_openpis_stay_in_suite_libero():
+    TASK_SUITE_MAX_STEPS = lerobot_constant("envs/libero.py", "TASK_SUITE_MAX_STEPS")  # noqa: N806
+    assert TASK_SUITE_MAX_STEPS["libero_spatial"] == 280
 
     from suites.libero.lerobot_protocol import LEROBOT_MAX_STEPS
     from suites.libero.tasks import MAX_STEPS, suite_tasks
