@@ -75,13 +75,30 @@ def test_metaworld_instructions_seeds_and_limit_are_lerobots():
     from lerobot.envs.metaworld import TASK_DESCRIPTIONS
 
     suite, retain = get_suite("metaworld-lerobot"), get_suite("metaworld")
-    assert len(suite.task_names()) == 50
+    assert len(suite.task_names()) == 50  # LeRobot's texts, even where two tasks share one
     for task in suite.task_names():
         assert suite.instruction(task) == TASK_DESCRIPTIONS[task]
         assert suite.max_steps(task) == 500
     assert retain.instruction("assembly-v3") != suite.instruction("assembly-v3")
     seed = EvalPipelineConfig.__dataclass_fields__["seed"].default  # lerobot-eval's --seed
     assert suite.episode_keys("door-open-v3", "eval", 3) == [seed, seed + 1, seed + 2]
+
+
+def test_metaworld_lerobots_expert_still_succeeds_on_lerobots_env():
+    """The MT1 env LeRobot builds hides the goal from its observation; the suite shows it again
+    for the scripted experts (demos), which changes none of LeRobot's four state values."""
+    from suites.base import run_expert_episode
+
+    suite = get_suite("metaworld-lerobot")
+    env = suite.make_env("door-open-v3")
+    try:
+        seed = suite.episode_keys("door-open-v3", "eval", 1)[0]
+        episode = run_expert_episode(env, seed, suite.max_steps("door-open-v3"), record=True)
+        assert episode.success
+        assert episode.observations[0]["state"].shape == (4,)
+        assert np.any(env._obs[36:39] != 0)  # the goal is visible to the expert
+    finally:
+        env.close()
 
 
 def test_the_protocols_image_sizes_are_lerobot_evals():
