@@ -192,6 +192,7 @@ def compare(policy, ours: Trace, theirs: Trace, min_steps: int) -> None:
     bit, the simulators' states too, and the same success at the same step."""
     assert len(ours.actions) == len(theirs.actions), (len(ours.actions), len(theirs.actions))
     assert len(ours.actions) >= min_steps or ours.successes[-1]
+    assert len(ours.observations) == len(theirs.observations) == len(ours.actions)
     for t, (mine, lerobot) in enumerate(zip(ours.observations, theirs.observations)):
         for key, feature in policy.features.items():
             value = mine[key]
