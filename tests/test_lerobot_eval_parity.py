@@ -287,3 +287,24 @@ def test_libero_paper_lerobot_with_a_lerobot_checkpoint_as_the_base(libero_check
     assert "suite: libero-lerobot" in config and "image_size: 360" in config
     stages = json.loads((run / "metrics.json").read_text())["stages"]
     assert len(stages) == 2 and np.isnan(stages[0]["train_loss"])  # the base: not retrained
+
+
+def test_a_saved_smolvla_loads_when_the_policy_that_saved_it_is_gone(libero_checkpoint):
+    """A random-init SmolVLA's tokenizer is its scratch VLM folder's, which goes with the policy;
+    the folder keeps a copy (vlm/), and loading it must use that one (it did not, until the
+    libero-paper-lerobot run with such a checkpoint as its base)."""
+    import gc
+    import json
+    from pathlib import Path
+
+    gc.collect()  # the fixture's policy, and with it its scratch folder
+    saved = json.loads((libero_checkpoint / "policy_preprocessor.json").read_text())
+    names = [s.get("config", {}).get("tokenizer_name") for s in saved["steps"]]
+    assert not any(name and Path(name).is_dir() for name in names)  # gone
+    cls = get_policy("lerobot_smolvla")
+    suite = get_suite("libero-lerobot")
+    features = tuple(dict(suite.lerobot.features).items())
+    policy = cls(cls.Config(state_dim=8, action_dim=7, size="tiny", chunk_size=6,
+                            n_action_steps=4, image_size=PX, image_keys=CAMERA_KEYS,
+                            instructions=("a",), features=features, path=str(libero_checkpoint)))
+    assert policy.processors()[0] is not None
