@@ -70,9 +70,8 @@ def lerobot_libero(suite: str, task_index: int, size: int):
     from suites.libero.install import point_libero_at_config
 
     point_libero_at_config()
-    env = LiberoEnv(_get_suite(suite), task_index, suite, obs_type="pixels_agent_pos",
-                    observation_width=size, observation_height=size, episode_index=0)
-    return env
+    return LiberoEnv(_get_suite(suite), task_index, suite, obs_type="pixels_agent_pos",
+                     observation_width=size, observation_height=size, episode_index=0)
 
 
 def lerobot_metaworld(task: str):
@@ -212,7 +211,7 @@ def compare(policy, ours: Trace, theirs: Trace, min_steps: int) -> None:
 
 
 def sim_state(env) -> np.ndarray:
-    """The flattened MuJoCo state (qpos, qvel) of either side's simulator."""
+    """Either side's MuJoCo qpos, qvel and ctrl (ctrl shows the action the simulator took)."""
     inner = getattr(env, "_env", None) or getattr(env, "env", None)
     data = _mujoco_data(inner if inner is not None else env)
     return np.concatenate([data.qpos, data.qvel, data.ctrl]).copy()
