@@ -9,8 +9,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
-export HF_HUB_OFFLINE := 1
-export TRANSFORMERS_OFFLINE := 1
+# offline unless the environment says otherwise (HF_HUB_OFFLINE=0 make bench ... policy_path=<hub id>)
+export HF_HUB_OFFLINE ?= 1
+export TRANSFORMERS_OFFLINE ?= $(HF_HUB_OFFLINE)
 export TOKENIZERS_PARALLELISM := false
 export PYTHONUNBUFFERED := 1
 

@@ -13,7 +13,7 @@ import torch
 from harness.common.device import resolve_device
 from harness.common.seeding import derive_seed, generator
 from harness.config.benchmark import BenchConfig
-from harness.data.lerobot.checkpoint import checkpoint_features
+from harness.data.lerobot.checkpoint import checkpoint_features, protocol_features
 from harness.data.prepare import BenchmarkData, demo_spec
 from harness.evaluate.recording import VideoSettings
 from harness.evaluate.rollouts import Evaluator
@@ -68,6 +68,8 @@ def policy_config(cfg: BenchConfig, suite: Suite):
         features = checkpoint_features(cfg, suite)
         optional["features"] = tuple(features.items())
         image_keys = tuple(k for k in image_keys if k in features)
+    elif "features" in declared and (named := protocol_features(suite, image_keys)):
+        optional["features"] = tuple(named.items())  # lerobot-eval's names (libero-lerobot)
     if "weights" in declared and cfg.policy_path:
         optional["weights"] = checkpoint_identity(cfg.policy_path)
     return make_config(cfg.policy, state_dim=suite.state_dim, action_dim=suite.action_dim,

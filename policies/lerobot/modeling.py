@@ -192,6 +192,11 @@ class LeRobotPolicy(nn.Module):
         overrides = {"device_processor": {"device": "cpu"}}
         if self._tokenizer is not None:
             overrides["tokenizer_processor"] = {"tokenizer": self._tokenizer}
+        elif self.config.path and (checkpoint_folder(self.config.path) / VLM_DIR).is_dir():
+            # SmolVLA's tokenizer is its VLM's, kept inside the folder (save_folder); the saved
+            # processor still names the scratch folder it was made from, gone with its policy
+            vlm = str(checkpoint_folder(self.config.path) / VLM_DIR)
+            overrides["tokenizer_processor"] = {"tokenizer_name": vlm}
         try:
             with _quiet():
                 if self.config.path:
