@@ -145,9 +145,11 @@ def metaworld_oracle(kind: str, task: str, steps: int = STEPS):
     return policy, ours, theirs
 
 
+# each policy on one of the two suites (and tasks below): every pair would double make
+# test-slow's four LIBERO episodes of 50 steps with two cameras, 4-5 minutes each here
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", KINDS)
-@pytest.mark.parametrize("suite_name,task_index", LIBERO_CASES)
+@pytest.mark.parametrize("kind,suite_name,task_index",
+                         [(k, *case) for k, case in zip(KINDS, LIBERO_CASES)])
 def test_libero_episode_is_lerobot_evals(kind, suite_name, task_index):
     from tests.lerobot_oracle import compare
 
@@ -157,8 +159,7 @@ def test_libero_episode_is_lerobot_evals(kind, suite_name, task_index):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", KINDS)
-@pytest.mark.parametrize("task", METAWORLD_CASES)
+@pytest.mark.parametrize("kind,task", list(zip(KINDS, METAWORLD_CASES)))
 def test_metaworld_episode_is_lerobot_evals(kind, task):
     from tests.lerobot_oracle import compare
 
