@@ -1,0 +1,67 @@
+"""How a suite draws its camera views: the `render` setting.
+
+`faithful` (the default) draws the suite's own images: only passes that change no pixel are
+skipped (LIBERO's reflection pass: its images are equal to the bit without it, on all 130 tasks,
+tests/test_render.py). `fast` trades a small, measured image difference for CPU time: no
+shadows, reflections or multisampling, and on LIBERO its heavy visual meshes swapped for
+simplified copies (suites/libero/simplify.py). A policy trained on one mode's images is
+evaluated on the same mode's: the setting enters the run key and the demo caches whenever
+cameras are on (harness/config/benchmark.py, harness/data/prepare.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+RENDER_MODES = ("faithful", "fast")
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """What a suite's renderer draws; applied to the model and scene before a view is drawn."""
+
+    reflections: bool = True
+    shadows: bool = True
+    samples: int = 4  # multisampling's samples a pixel (MuJoCo's default offsamples); 0: off
+    mesh_faces: int = 0  # each visual mesh capped at this many faces; 0: meshes as they are
+
+
+FAST = RenderSettings(reflections=False, shadows=False, samples=0)
+
+
+def check_render(mode: str) -> str:
+    """The mode, or a one-line ValueError naming the valid ones."""
+    if mode not in RENDER_MODES:
+        raise ValueError(f"bad value {mode!r} for render: expected one of {', '.join(RENDER_MODES)}")
+    return mode
+
+
+def apply_to_model(model, settings: RenderSettings) -> None:
+    """Model-level settings, read when a GL context is made (multisampling): call before."""
+    model.vis.quality.offsamples = settings.samples
+
+
+def apply_to_scene(scene, settings: RenderSettings) -> None:
+    """Scene flags, read at every draw: a renderer keeps them until changed."""
+    import mujoco
+
+    flags = mujoco.mjtRndFlag
+    scene.flags[flags.mjRND_REFLECTION] = int(settings.reflections)
+    scene.flags[flags.mjRND_SHADOW] = int(settings.shadows)
+
+
+def apply_to_robosuite(sim, settings: RenderSettings) -> None:
+    """The settings on a robosuite sim's offscreen renderer (made by robosuite at a reset, and
+    again after a reload): its scene flags, and its GL context remade where the multisampling
+    asked for differs from the one it was made with."""
+    context = sim._render_context_offscreen
+    if context is None:
+        return
+    apply_to_scene(context.scn, settings)
+    model = sim.model._model
+    before = model.vis.quality.offsamples
+    apply_to_model(model, settings)
+    if model.vis.quality.offsamples != before:
+        context.gl_ctx.make_current()
+        context.con.free()
+        context._set_mujoco_context_and_buffers()
