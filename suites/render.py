@@ -65,3 +65,9 @@ def apply_to_robosuite(sim, settings: RenderSettings) -> None:
         context.gl_ctx.make_current()
         context.con.free()
         context._set_mujoco_context_and_buffers()
+
+
+def render_argument(mode: str) -> dict[str, str]:
+    """`Suite.make_env`'s keyword for a mode: none for faithful, so that a user's own suite
+    written before the setting still builds its envs (and is refused `render=fast`)."""
+    return {} if mode == "faithful" else {"render": mode}

@@ -46,7 +46,8 @@ def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec
     return DemoSpec(suite=suite.name, suite_version=suite.version(task), task=task, split=split,
                     num_demos=n, max_episode_steps=suite.step_limit(task, cfg.max_episode_steps),
                     cameras=cfg.cameras, image_size=cfg.image_size,
-                    source=user_file(cfg, suite, task) if cfg.demos_dir else "")
+                    source=user_file(cfg, suite, task) if cfg.demos_dir else "",
+                    render=cfg.render if cfg.cameras else "faithful")
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,6 @@ import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
 from suites.base import Observation, StepResult, SuiteError, TaskEnv, is_spatial
 from suites.libero.fast_step import FastStepper, Unsupported
 from suites.libero.install import ensure_installed
-from suites.render import FAST, RenderSettings, apply_to_robosuite, check_render
 from suites.libero.tasks import (
     MAX_OBJECTS,
     NUM_INIT_STATES,
@@ -52,6 +51,7 @@ from suites.libero.tasks import (
     LiberoTask,
     init_states,
 )
+from suites.render import FAST, RenderSettings, apply_to_robosuite, check_render
 
 FRESH_PLACEMENT = 1 << 30
 SPATIAL_OFFSET = (0.03, 0.06)  # m: how far the spatial probe moves an object (x, y), at least/most
