@@ -1,8 +1,7 @@
 """How a suite draws its camera views: the `render` setting.
 
-`faithful` (the default) draws the suite's own images: only passes that change no pixel are
-skipped (LIBERO's reflection pass: its images are equal to the bit without it, on all 130 tasks,
-tests/test_render.py). `fast` trades a small, measured image difference for CPU time: no
+`faithful` (the default) draws the suite's own images, as before the setting existed (LIBERO's
+reflection pass, thought free, moves pixels: tests/test_render.py). `fast` trades a small, measured image difference for CPU time: no
 shadows, reflections or multisampling, and on LIBERO its heavy visual meshes swapped for
 simplified copies (suites/libero/simplify.py). A policy trained on one mode's images is
 evaluated on the same mode's: the setting enters the run key and the demo caches whenever
@@ -52,11 +51,13 @@ def apply_to_scene(scene, settings: RenderSettings) -> None:
 
 def apply_to_robosuite(sim, settings: RenderSettings) -> None:
     """The settings on a robosuite sim's offscreen renderer (made by robosuite at a reset, and
-    again after a reload): its scene flags, and its GL context remade where the multisampling
-    asked for differs from the one it was made with."""
+    again after a reload): its scene flags, its GL context remade where the multisampling
+    asked for differs from the one it was made with, and that context made current before
+    each draw (`_own_context_first`)."""
     context = sim._render_context_offscreen
     if context is None:
         return
+    _own_context_first(context)
     apply_to_scene(context.scn, settings)
     model = sim.model._model
     before = model.vis.quality.offsamples
@@ -71,3 +72,19 @@ def render_argument(mode: str) -> dict[str, str]:
     """`Suite.make_env`'s keyword for a mode: none for faithful, so that a user's own suite
     written before the setting still builds its envs (and is refused `render=fast`)."""
     return {} if mode == "faithful" else {"render": mode}
+
+
+def _own_context_first(context) -> None:
+    """Make a robosuite renderer draw in its own GL context. robosuite draws in whichever
+    context is current, and every env has its own: with two LIBERO envs in a process (an
+    evaluation holds one per task) the first env's views came out black or 52.8/255 apart
+    on average (tests/test_render.py)."""
+    if getattr(context, "_retain_own_context", False):
+        return
+    draw = context.render
+
+    def render(*args, **kwargs):
+        context.gl_ctx.make_current()
+        return draw(*args, **kwargs)
+
+    context.render, context._retain_own_context = render, True

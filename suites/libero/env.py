@@ -71,12 +71,12 @@ CAMERAS = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "robot0_eye_in_hand"
 ROBOT_INIT_NOISE = "default"
 # Set to 0 (or false/no/off) to step every LIBERO env through robosuite's own `env.step`.
 FAST_STEP_ENV = "RETAIN_LIBERO_FAST_STEP"
-# LIBERO's render modes (suites/render.py). Faithful skips the reflection pass: LIBERO's images
-# are equal to the bit without it on all 130 tasks (tests/test_render.py), and up to twice as
-# fast. Fast also simplifies every visual mesh above MESH_FACES faces (suites/libero/simplify.py).
+# LIBERO's render modes (suites/render.py). Faithful draws as robosuite does: its reflection pass
+# is not free of pixels (libero_spatial's first task: 227 of agentview's 16384 pixels, mean
+# 1.1/255, up to 134; tests/test_render.py), and its lights cast no shadows. Fast also simplifies
+# every visual mesh above MESH_FACES faces (suites/libero/simplify.py).
 MESH_FACES = 2000
-RENDER = {"faithful": RenderSettings(reflections=False),
-          "fast": dataclasses.replace(FAST, mesh_faces=MESH_FACES)}
+RENDER = {"faithful": RenderSettings(), "fast": dataclasses.replace(FAST, mesh_faces=MESH_FACES)}
 RAW_KEYS = ("robot0_joint_pos", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
 log = logging.getLogger(__name__)
