@@ -19,6 +19,9 @@ import numpy as np
 from suites import get_suite
 from suites.render import RENDER_MODES
 
+SUITES = ("libero", "metaworld", "bimanual")
+RESET_EVERY = 5  # frames (of every camera) an episode before the next episode's scene
+
 
 @dataclass
 class ViewFigures:
@@ -58,7 +61,7 @@ def views(env) -> list:
 
 
 def measure_views(suite_name: str, tasks: list[str], frames: int = 100, image_size: int = 128,
-                  steps_between: int = 5, seed: int = 0) -> ViewFigures:
+                  steps_between: int = 3, seed: int = 0) -> ViewFigures:
     """`frames` frames spread over `tasks` (a few episodes each, `steps_between` random steps
     apart), every camera drawn by a faithful and a fast env of the same task."""
     suite = get_suite(suite_name)
@@ -71,11 +74,11 @@ def measure_views(suite_name: str, tasks: list[str], frames: int = 100, image_si
         try:
             draws = {mode: views(env) for mode, env in envs.items()}
             cameras = len(draws["faithful"])
-            keys = suite.episode_keys(task, "eval", 2)
+            keys = suite.episode_keys(task, "eval", math.ceil(per_task / cameras / RESET_EVERY))
             for i in range(math.ceil(per_task / cameras)):
-                if i % 10 == 0:
+                if i % RESET_EVERY == 0:  # another episode: another scene
                     for env in envs.values():
-                        env.reset(keys[(i // 10) % len(keys)])
+                        env.reset(keys[(i // RESET_EVERY) % len(keys)])
                 action = rng.uniform(-1, 1, suite.action_dim)
                 for _ in range(steps_between):
                     results = [env.step(action) for env in envs.values()]
@@ -111,3 +114,13 @@ def print_views(rows: list[ViewFigures], image_size: int) -> None:
         peak = ", ".join(str(int(x)) for x in f.max_abs)
         print(f"| {f.suite} | {f.frames} | {f.ms['faithful']:.1f} | {f.ms['fast']:.1f} | "
               f"{f.ms['faithful'] / f.ms['fast']:.1f}x | {mean} | {peak} | {f.psnr:.1f} |")
+
+
+def bench_views(frames: int = 100, image_size: int = 128, n_tasks: int = 5) -> None:
+    """Each suite's figures over `n_tasks` tasks spread over its task list."""
+    rows = []
+    for name in SUITES:
+        tasks = get_suite(name).task_names()
+        rows.append(measure_views(name, tasks[::max(1, len(tasks) // n_tasks)][:n_tasks], frames,
+                                  image_size))
+    print_views(rows, image_size)
