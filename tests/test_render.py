@@ -117,3 +117,38 @@ def test_metaworld_fast_draws_without_shadows_or_multisampling():
     finally:
         for env in envs.values():
             env.close()
+
+
+@pytest.mark.slow
+def test_every_libero_mesh_file_simplifies_and_compiles(tmp_path, monkeypatch):
+    """Every mesh file of LIBERO's assets and robosuite's Panda, at render=fast's cap: a copy
+    MuJoCo compiles, with fewer faces than its source (seams may stop it above the cap), every
+    vertex one of the
+    source's with its texture coordinates."""
+    from pathlib import Path
+
+    import robosuite
+    from libero.libero import get_libero_path
+
+    monkeypatch.setenv(simplify.CACHE_ENV, str(tmp_path))
+    roots = [Path(get_libero_path("assets")),
+             Path(robosuite.__file__).parent / "models/assets/robots/panda"]
+    files = sorted(str(p) for root in roots for p in root.rglob("*")
+                   if p.suffix in (".msh", ".obj", ".stl"))
+    assert len(files) > 300
+    cap, simplified = RENDER["fast"].mesh_faces, 0
+    for source in files:
+        copy = simplify.simplified_file(source, cap)
+        if copy is None:
+            continue
+        simplified += 1
+        original, mesh = simplify.compiled_mesh(source), simplify.compiled_mesh(copy)
+        assert len(mesh.faces) < len(original.faces), source
+        assert len(mesh.texcoords) == (len(mesh.vertices) if len(original.texcoords) else 0)
+        ours, theirs = (np.concatenate([m.vertices, m.texcoords], 1) if len(m.texcoords)
+                        else m.vertices for m in (mesh, original))
+        ours = ours[::97]
+        scale = np.abs(original.vertices).max()
+        worst = max(np.abs(theirs - row).max(axis=1).min() for row in ours)
+        assert worst < 1e-5 * max(scale, 1), (source, worst)
+    assert simplified > 20
