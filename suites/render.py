@@ -1,9 +1,10 @@
 """How a suite draws its camera views: the `render` setting.
 
 `faithful` (the default) draws the suite's own images, as before the setting existed (LIBERO's
-reflection pass, thought free, moves pixels: tests/test_render.py). `fast` trades a small, measured image difference for CPU time: no
-shadows, reflections or multisampling, and on LIBERO its heavy visual meshes swapped for
-simplified copies (suites/libero/simplify.py). A policy trained on one mode's images is
+reflection pass, thought free, moves pixels: tests/test_render.py). `fast` trades a small,
+measured image difference for CPU time: no shadows or multisampling (and on Meta-World and
+bimanual no reflections), and on LIBERO its heavy visual meshes swapped for simplified copies
+(suites/libero/simplify.py). A policy trained on one mode's images is
 evaluated on the same mode's: the setting enters the run key and the demo caches whenever
 cameras are on (harness/config/benchmark.py, harness/data/prepare.py).
 """
@@ -21,7 +22,7 @@ class RenderSettings:
 
     reflections: bool = True
     shadows: bool = True
-    samples: int = 4  # multisampling's samples a pixel (MuJoCo's default offsamples); 0: off
+    samples: int | None = None  # multisampling's samples a pixel; 0: off; None: the model's own
     mesh_faces: int = 0  # each visual mesh capped at this many faces; 0: meshes as they are
 
 
@@ -37,7 +38,8 @@ def check_render(mode: str) -> str:
 
 def apply_to_model(model, settings: RenderSettings) -> None:
     """Model-level settings, read when a GL context is made (multisampling): call before."""
-    model.vis.quality.offsamples = settings.samples
+    if settings.samples is not None:
+        model.vis.quality.offsamples = settings.samples
 
 
 def apply_to_scene(scene, settings: RenderSettings) -> None:
