@@ -9,8 +9,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
-export HF_HUB_OFFLINE := 1
-export TRANSFORMERS_OFFLINE := 1
+# offline unless the environment says otherwise (HF_HUB_OFFLINE=0 make bench ... policy_path=<hub id>)
+export HF_HUB_OFFLINE ?= 1
+export TRANSFORMERS_OFFLINE ?= $(HF_HUB_OFFLINE)
 export TOKENIZERS_PARALLELISM := false
 export PYTHONUNBUFFERED := 1
 
@@ -43,7 +44,7 @@ venv: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m harness bench $(call quote,$(OVERRIDES))
 
-REPORT_ARGS := $(filter EXPERIMENT=% BENCH=% PROFILE=% results_dir=% log_run=%,$(OVERRIDES))
+REPORT_ARGS := $(filter EXPERIMENT=% BENCH=% PROFILE=% results_dir=% log_run=% open=%,$(OVERRIDES))
 REPORT = $(PY) -m harness.report $(call quote,$(REPORT_ARGS))
 
 # every method on the same foundation, then the report: make compare BENCH=mw-quick SEEDS=3
@@ -61,7 +62,8 @@ sweep: $(STAMP)
 study: $(STAMP)
 	$(PY) -m harness study $(call quote,$(OVERRIDES))
 
-# tables and plots rebuilt from the MLflow store: make report [EXPERIMENT=mw-quick]
+# tables, plots and the HTML page (report.html, with the rollout videos) rebuilt from the MLflow
+# store: make report [EXPERIMENT=mw-quick] [open=1: open the page in the browser]
 report: $(STAMP)
 	$(REPORT)
 
@@ -117,8 +119,10 @@ lerobot-export: $(STAMP)
 libero-check: $(STAMP)
 	$(PY) -m suites.libero.build_all $(LIBERO_SUITES)
 
-# the suite without its slow checks (pytest -m slow: reruns, kills and resumes of whole runs, and
-# statistics over many scenes; about 5 minutes more), which test-slow runs; CI runs both
+# the suite without its slow checks (pytest -m slow: reruns, kills and resumes of whole runs,
+# statistics over many scenes, and the report page's videos played in headless Chromium, which
+# its test installs with apt-get where it is missing; about 5 minutes more), which test-slow
+# runs; CI runs both
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings -m "not slow" tests
 

@@ -33,8 +33,10 @@ def _load_builtins() -> None:
 
 
 def method_names() -> list[str]:
+    """The fine-tuning methods (what METHOD=all runs); `checkpoints`, whose stages load weights
+    instead of training, is registered but not one of them."""
     _load_builtins()
-    return sorted(_REGISTRY)
+    return sorted(name for name, cls in _REGISTRY.items() if cls.trains)
 
 
 def get_method(spec: str) -> type[Method]:

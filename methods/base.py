@@ -109,6 +109,10 @@ class Method:
     # step run. A method whose sample_batch reads the policy (loss-based sampling, say) must say
     # False, or it would read weights that are being updated.
     prefetch_batches: ClassVar[bool] = True
+    # False for a "method" whose stages load weights made elsewhere (`checkpoints`): the trainer
+    # takes no step, and METHOD=all (`method_names`) leaves it out
+    trains: ClassVar[bool] = True
+    label_omits: ClassVar[tuple[str, ...]] = ()  # hyperparameters its run label never shows
 
     def __init__(self, config: MethodConfig | None = None):
         self.config = config if config is not None else self.Config()
@@ -121,6 +125,15 @@ class Method:
         flags = [(cls.uses_past_data, PAST_DATA), (cls.uses_reference_copy, REFERENCE_COPY),
                  (cls.task_aware_eval, TASK_IDENTITY)]
         return ", ".join(name for on, name in flags if on or name in observed) or "none"
+
+    @property
+    def label(self) -> str:
+        """The run's name before its settings ("consft" in "consft[kappa=0.1]")."""
+        return self.name
+
+    def check_setup(self, policy_config, stages: int) -> None:
+        """At plan time, with the run's policy config and its number of stream stages: raise a
+        ValueError (one line) for a setting that cannot work, before anything runs."""
 
     # -- hooks -------------------------------------------------------------------------------
 

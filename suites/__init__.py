@@ -21,6 +21,8 @@ _SUITES: dict[str, str] = {
     "metaworld": "suites.metaworld",
     "libero": "suites.libero",
     "libero-proprio": "suites.libero.proprio",  # LIBERO's community datasets' 8-D state
+    "libero-lerobot": "suites.libero.lerobot_protocol",  # lerobot-eval's LIBERO protocol
+    "metaworld-lerobot": "suites.metaworld.lerobot_protocol",  # lerobot-eval's Meta-World
     "bimanual": "suites.bimanual",
 }
 _FACTORIES: dict[str, Callable[[], Suite]] = {}

@@ -65,6 +65,22 @@ class TaskEnv(ABC):
         inside its demo group (LIBERO's "obs/ee_states", "states", ...); none by default."""
         return {}
 
+    # -- videos: the state is recorded during an episode, the frames drawn from it afterwards
+    def view_state(self) -> np.ndarray:
+        """What the scene looks like now, as a flat array `render_state` draws again: the
+        simulator's state and whatever else a view depends on (LIBERO's fixture poses, which it
+        writes into the model at each reset). Cheap enough to take every step of an evaluation
+        episode; the episode itself is not changed."""
+        raise SuiteError(f"{type(self).__name__} cannot record its state for videos; suites "
+                         "with videos: bimanual, libero, metaworld")
+
+    def render_state(self, state: np.ndarray, camera: str, size: int) -> np.ndarray:
+        """A recorded `view_state` seen from `camera` ("" for the suite's `video_camera`), as an
+        upright uint8 [size, size, 3] image. It may move this env's own state: rendering
+        happens on an env of its own, built with cameras on, after the episodes."""
+        raise SuiteError(f"{type(self).__name__} cannot render a state for videos; suites "
+                         "with videos: bimanual, libero, metaworld")
+
     def close(self) -> None:  # noqa: B027 - optional
         pass
 
@@ -82,6 +98,9 @@ class Suite(ABC):
 
     def __init__(self):
         os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering when cameras are on
+
+    video_camera: str = ""
+    """The camera a video shows when none is named: the suite's view of the whole workspace."""
 
     @abstractmethod
     def task_names(self) -> list[str]: ...

@@ -71,9 +71,19 @@ def apply_to_robosuite(sim, settings: RenderSettings) -> None:
 
 
 def render_argument(mode: str) -> dict[str, str]:
-    """`Suite.make_env`'s keyword for a mode: none for faithful, so that a user's own suite
-    written before the setting still builds its envs (and is refused `render=fast`)."""
+    """`Suite.make_env`'s keyword for a mode: none for faithful, so that a suite written
+    without the setting (a user's, the LeRobot-protocol suites) still builds its envs."""
     return {} if mode == "faithful" else {"render": mode}
+
+
+def check_suite_renders(suite, mode: str) -> None:
+    """A one-line ValueError where `mode` is not faithful and the suite's `make_env` takes no
+    `render` (it would draw its own images under another mode's caches)."""
+    import inspect
+
+    if mode != "faithful" and "render" not in inspect.signature(suite.make_env).parameters:
+        raise ValueError(f"render={mode} for suite {suite.name!r}, which draws its own images "
+                         f"only: leave render=faithful")
 
 
 def _own_context_first(context) -> None:

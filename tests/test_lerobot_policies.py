@@ -227,6 +227,7 @@ def test_a_checkpoint_that_does_not_fit_the_suite_is_one_line(mw_checkpoint, tmp
         plan(["PROFILE=tiny", "METHOD=sft", f"policy_path={mw_checkpoint}"])
 
 
+@pytest.mark.slow  # a minute: make test runs LeRobot end to end in tests/test_lerobot_checkpoint_cli.py
 def test_every_method_trains_resumes_and_trains_on_with_lerobots_pi0(tmp_path):
     """All twelve methods (and ConSFT's variants): a stage, its checkpoint, the next stage."""
     result = gpu_check.check_methods(torch.device("cpu"), gpu_check.CPU_SMOKE, tmp_path,

@@ -130,7 +130,7 @@ def test_report_files(report):
     first = report[1]
     assert {"summary.md", "summary.csv", "summary.tex", "foundation_success.png",
             "plasticity_vs_retention.png", "update_sparsity.png", "relative_l2_per_layer.png",
-            "success_matrix_sft.png", "success_matrix_consft.png"} == set(first)
+            "success_matrix_sft.png", "success_matrix_consft.png", "report.html"} == set(first)
     assert all(first[name][:8] == b"\x89PNG\r\n\x1a\n" for name in first if name.endswith(".png"))
 
 

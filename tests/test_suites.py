@@ -8,8 +8,10 @@ import pytest
 from suites import episode_seeds, get_suite, suite_names
 
 # real LIBERO's 130 tasks take seconds each to build: tests/test_suite_libero.py samples them
-# (and tests/test_lerobot_libero.py libero-proprio, the same LIBERO with another state)
-SUITES = [s for s in suite_names() if not s.startswith("libero")]
+# (and tests/test_lerobot_libero.py libero-proprio, the same LIBERO with another state); the
+# -lerobot suites are the same simulators under lerobot-eval's conventions, held to LeRobot's
+# env classes by tests/test_lerobot_eval_parity.py
+SUITES = [s for s in suite_names() if not s.startswith("libero") and not s.endswith("-lerobot")]
 CASES = [(s, t) for s in SUITES for t in get_suite(s).task_names()]
 _ENVS: dict = {}
 

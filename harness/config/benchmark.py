@@ -79,6 +79,9 @@ class BenchConfig:
     cache_dir: Annotated[str, MinLen(1)] = "cache"
     demos_dir: str = ""  # real LIBERO dataset files (<task>_demo.hdf5) to train on instead of experts
     progress: bool = True
+    # at plan time, the policy computes its loss and one action chunk on one sample of the
+    # suite's shapes (on the CPU: a published 3B checkpoint takes a minute and 16 GB there)
+    dry_run: bool = True
     # intra-op threads per process; small CPU batches are slower with more
     torch_threads: Annotated[int, Ge(1)] = 1
     eval_workers: Annotated[int, Ge(0), doc("0: one per core")] = 0  # evaluation processes
@@ -118,6 +121,17 @@ class BenchConfig:
     # the paper's held-out suites: name -> foundation tasks, each reported on its own and
     # averaged (its table 2: base, target, each held-out suite, the held-out average)
     heldout_groups: dict[str, list[str]] = field(default_factory=dict)
+    # -- rollout videos (docs/reports.md): states recorded during the evaluation, frames drawn
+    # after it; every chosen task's first video_episodes episodes at stage 0, after its own
+    # stage and after the last. Off: nothing is recorded and nothing drawn
+    videos: bool = False
+    video_tasks: list[str] = field(default_factory=list)  # []: every task
+    video_episodes: Annotated[int, Ge(1), AtMost("eval_episodes")] = 1
+    video_size: Annotated[int, Interval(ge=32, le=1024), doc("pixels, square")] = 224
+    # a camera of the suite's scenes (checked where the first frame is drawn: the scene names
+    # them); "": the suite's view of the workspace (Meta-World corner, LIBERO agentview)
+    video_camera: Annotated[str, doc('"": the suite\'s view of the workspace')] = ""
+    video_fps: Annotated[int, Interval(ge=1, le=60)] = 20
 
     def stream_stages(self) -> list[list[str]]:
         """The stream tasks of each stage, in order (`stage_sizes`; one task a stage by default)."""
@@ -172,15 +186,18 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "eval_step_cap",
     "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
     "image_size", "render", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
+    "dry_run",
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
     "policy", "policy_path", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups",
-    "snapshot_minutes"})
+    "snapshot_minutes", "videos", "video_tasks", "video_episodes", "video_size", "video_camera",
+    "video_fps"})
 
 # settings that cannot change a run's results (where it is written, how rollouts are split);
 # torch_threads stays in: the summation order of a matrix product depends on it
-NOT_IN_RUN_KEY = ("progress", "seed", "seeds", "method", "grid", "profile", "eval_workers",
+NOT_IN_RUN_KEY = ("progress", "dry_run", "seed", "seeds", "method", "grid", "profile", "eval_workers",
                   "eval_envs_per_task", "results_dir", "cache_dir", "executor", "jobs",
-                  "snapshot_minutes")
+                  "snapshot_minutes", "videos", "video_tasks", "video_episodes", "video_size",
+                  "video_camera", "video_fps")
 
 # settings added after results were recorded, at the value that changes nothing: there a run
 # key leaves them out (earlier checkpoints still resume) and a report reads a run that never
@@ -214,6 +231,10 @@ def check_protocol(cfg: BenchConfig) -> None:
         if outside:
             raise RetainError(f"heldout_groups[{name!r}] names {outside[0]!r}, which is not a "
                               f"foundation task of {cfg.name}")
+    unknown = [t for t in cfg.video_tasks if t not in cfg.all_tasks()]
+    if unknown:
+        raise RetainError(f"bad value {unknown[0]!r} in video_tasks: expected tasks of "
+                          f"{cfg.name}: {', '.join(cfg.all_tasks())}")
 
 
 def benchmark_names() -> list[str]:

@@ -25,14 +25,15 @@ from __future__ import annotations
 
 import os
 from collections import Counter, deque
-from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
 from multiprocessing import get_context
 
 import numpy as np
 import torch
 
 from harness.common.device import autocast
+from harness.common.progress import Progress
 from harness.common.seeding import generator
 from harness.data.datasets import TrainingData, instruction_entries
 from policies.base import noise_shape
@@ -70,6 +71,7 @@ class EvalEpisode:
     seed: int  # the suite's reset key: a seed, for LIBERO the fixed init state's index, or a
     # spatial probe's key (suites.base.SPATIAL_KEYS)
     max_steps: int  # the task's step limit (the suite's own where it has one, e.g. LIBERO's)
+    record: bool = False  # keep the simulator's state at every step, for a video (recording.py)
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,9 @@ class TaskEvaluation:
     task: str
     successes: tuple[bool, ...]
     steps: int  # environment steps taken, for throughput figures
+    # recorded episodes: reset key -> the simulator's state at reset and after every step (not
+    # part of equality: two evaluations are equal when their outcomes are)
+    recordings: dict[int, np.ndarray] = field(default_factory=dict, compare=False)
 
     @property
     def success_rate(self) -> float:
@@ -120,6 +125,10 @@ class LocalSimulators:
         """(slot, action) -> that slot's step result."""
         return [self.envs[i].step(action) for i, action in items]
 
+    def states(self, items: list[tuple[int, None]]) -> list[np.ndarray]:
+        """(slot, None) -> that slot's simulator state now (a recorded episode's)."""
+        return [self.envs[i].view_state() for i, _ in items]
+
 
 @dataclass
 class _Slot:
@@ -142,7 +151,8 @@ def policy_device(policy) -> torch.device:
 @torch.no_grad()
 def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
              settings: EvalSettings, noise_seed: int, open_simulators, slots_per_task: int,
-             align_chunks: bool = False) -> list[tuple[bool, int]]:
+             align_chunks: bool = False, recordings: dict[int, list[np.ndarray]] | None = None,
+             episode_done=None) -> list[tuple[bool, int]]:
     """(success, steps) per episode. Slots step in lockstep; every slot that needs a new action
     chunk gets it from one batched policy call; a finished episode's slot starts the next
     episode of its task (at once, or with `align_chunks` at the next step that is a multiple of
@@ -150,8 +160,14 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
     chunk instead of up to one per step, for a policy whose call costs the same at any batch).
 
     `open_simulators(tasks)` gives the simulators of slots running `tasks` (one per slot), with
-    `reset` and `step` over lists of (slot, seed) and (slot, action)."""
+    `reset` and `step` over lists of (slot, seed) and (slot, action). `episode_done()` is
+    called as each episode ends (progress).
+
+    `recordings` (episode index -> states) receives the simulator's state after the reset and
+    after every step of each episode marked `record`, read between steps: the episode is the
+    same with or without it, and nothing is read when no episode is marked."""
     policy.eval()
+    record = recordings is not None and any(ep.record for ep in episodes)
     device = policy_device(policy)
     n_steps = settings.n_action_steps
     chunk_shape = noise_shape(policy, 1)[1:]
@@ -173,6 +189,8 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
             ep = episodes[slot.episode]
             slot.t, slot.obs = 0, obs
             slot.noise = generator("eval-noise", noise_seed, ep.task, ep.seed)
+        if record:
+            _record(sims, starting, episodes, recordings)
 
     waiting, clock = list(slots), 0  # slots between episodes
     while True:
@@ -194,32 +212,49 @@ def lockstep(policy, episodes: list[EvalEpisode], instructions: dict[str, np.nda
             for s, chunk in zip(need, chunks.float().cpu().numpy()):
                 s.plan = chunk
         results = sims.step([(s.index, s.plan[s.t % n_steps]) for s in running])
+        if record:
+            _record(sims, running, episodes, recordings)
         clock += 1
         for s, result in zip(running, results):
             s.t += 1
             s.obs = result.obs
             if result.success or s.t >= episodes[s.episode].max_steps:
                 outcomes[s.episode] = (result.success, s.t)
+                if episode_done is not None:
+                    episode_done()
                 s.episode = None
                 waiting.append(s)
     return outcomes
 
 
+def _record(sims, slots: list[_Slot], episodes: list[EvalEpisode], recordings: dict) -> None:
+    """Append the state of every slot whose episode is recorded."""
+    slots = [s for s in slots if episodes[s.episode].record]
+    if slots:
+        for s, state in zip(slots, sims.states([(s.index, None) for s in slots])):
+            recordings.setdefault(s.episode, []).append(state)
+
+
 def rollout(policy, episodes: list[EvalEpisode], instructions: dict[str, np.ndarray],
             settings: EvalSettings, noise_seed: int, envs: EnvCache,
-            align_chunks: bool = False) -> list[tuple[bool, int]]:
+            align_chunks: bool = False, recordings: dict | None = None, episode_done=None
+            ) -> list[tuple[bool, int]]:
     """(success, steps) per episode, on simulators in this process (`lockstep`)."""
     return lockstep(policy, episodes, instructions, settings, noise_seed,
-                    lambda tasks: LocalSimulators(envs, tasks), settings.envs_per_task, align_chunks)
+                    lambda tasks: LocalSimulators(envs, tasks), settings.envs_per_task, align_chunks,
+                    recordings, episode_done)
 
 
 def evaluation_episodes(suite: Suite, tasks: list[str], n: int, max_episode_steps: int,
-                        split: str = "eval", step_cap: int = 0) -> list[EvalEpisode]:
+                        split: str = "eval", step_cap: int = 0, record=frozenset()
+                        ) -> list[EvalEpisode]:
+    """Every task's `n` episodes of `split`; those whose (task, index) is in `record` marked."""
     def limit(task: str) -> int:
         own = suite.step_limit(task, max_episode_steps)
         return min(own, step_cap) if step_cap else own
 
-    return [EvalEpisode(t, key, limit(t)) for t in tasks for key in suite.episode_keys(t, split, n)]
+    return [EvalEpisode(t, key, limit(t), (t, i) in record) for t in tasks
+            for i, key in enumerate(suite.episode_keys(t, split, n))]
 
 
 def shard(episodes: list[EvalEpisode], n: int) -> list[list[EvalEpisode]]:
@@ -228,12 +263,15 @@ def shard(episodes: list[EvalEpisode], n: int) -> list[list[EvalEpisode]]:
     return [share for share in (episodes[i::n] for i in range(n)) if share]
 
 
-def group_by_task(episodes: list[EvalEpisode], outcomes: list[tuple[bool, int]]
-                  ) -> dict[str, TaskEvaluation]:
+def group_by_task(episodes: list[EvalEpisode], outcomes: list[tuple[bool, int]],
+                  recordings: dict[EvalEpisode, list] | None = None) -> dict[str, TaskEvaluation]:
     by_task: dict[str, list[tuple[bool, int]]] = {}
     for ep, out in zip(episodes, outcomes):
         by_task.setdefault(ep.task, []).append(out)
-    return {t: TaskEvaluation(t, tuple(s for s, _ in v), sum(n for _, n in v)) for t, v in by_task.items()}
+    kept = {t: {ep.seed: np.stack(states) for ep, states in (recordings or {}).items()
+                if ep.task == t} for t in by_task}
+    return {t: TaskEvaluation(t, tuple(s for s, _ in v), sum(n for _, n in v), kept[t])
+            for t, v in by_task.items()}
 
 
 class EnvWorkers:
@@ -304,6 +342,9 @@ class RemoteSimulators:
     def step(self, items: list[tuple[int, np.ndarray]]) -> list[StepResult]:
         return self._scatter("step", items)
 
+    def states(self, items: list[tuple[int, None]]) -> list[np.ndarray]:
+        return self._scatter("states", items)
+
     def _scatter(self, method: str, items: list) -> list:
         per_worker: dict[int, list] = {}
         for slot, arg in items:
@@ -324,33 +365,47 @@ class Evaluator:
     """
 
     def __init__(self, suite: Suite, settings: EvalSettings, workers: int = 1, torch_threads: int = 1,
-                 central_policy: bool | None = None):
+                 central_policy: bool | None = None, progress: bool = False):
         self.suite, self.settings, self.workers = suite, settings, max(1, workers)
+        self.progress = progress  # episodes done out of the total, as they end
         self.torch_threads, self.central_policy = torch_threads, central_policy
         self._local = EnvCache(suite, settings) if self.workers == 1 else None
         self._pool: ProcessPoolExecutor | None = None
         self._env_workers: EnvWorkers | None = None
 
     def evaluate(self, policy, tasks: list[str], instructions: dict[str, np.ndarray],
-                 noise_seed: int, split: str = "eval") -> dict[str, TaskEvaluation]:
-        """Per task, its episodes of `split`: "eval", "spatial" (the spatial probe) or "check"."""
+                 noise_seed: int, split: str = "eval", record=frozenset()
+                 ) -> dict[str, TaskEvaluation]:
+        """Per task, its episodes of `split`: "eval", "spatial" (the spatial probe) or "check";
+        the episodes whose (task, index) is in `record` keep their states (`recordings`)."""
         episodes = evaluation_episodes(self.suite, tasks, self.settings.episodes_of(split),
                                        self.settings.max_episode_steps, split,
-                                       self.settings.step_cap)
+                                       self.settings.step_cap, record)
+        with Progress(len(episodes), f"evaluation ({split}) of {len(tasks)} tasks",
+                      unit="episodes", enabled=self.progress) as shown:
+            return self._evaluate(policy, episodes, instructions, noise_seed, shown)
+
+    def _evaluate(self, policy, episodes: list[EvalEpisode], instructions, noise_seed: int,
+                  shown: Progress) -> dict[str, TaskEvaluation]:
         layout = self.layout(policy)
         on_cpu = policy_device(policy).type == "cpu"
         if layout == "central":
-            outcomes = self._central_rollout(policy, episodes, instructions, noise_seed)
-            return group_by_task(episodes, outcomes)
+            states: dict[int, list] = {}
+            outcomes = self._central_rollout(policy, episodes, instructions, noise_seed, states,
+                                             shown)
+            return group_by_task(episodes, outcomes, {episodes[i]: v for i, v in states.items()})
         # an accelerator's policy rolls everything out in one batch (its numerics differ anyway)
         shards = shard(episodes, self.settings.shards) if on_cpu else [episodes]
         if layout == "in-process":
-            results = [rollout(policy, share, instructions, self.settings, noise_seed,
-                               self._local, align_chunks=not on_cpu) for share in shards]
+            results = [_rollout_recorded(policy, share, instructions, self.settings, noise_seed,
+                                         self._local, not on_cpu, shown.update)
+                       for share in shards]
         else:
-            results = self._per_worker_rollout(policy, shards, instructions, noise_seed)
-        outcome = {ep: out for share, outs in zip(shards, results) for ep, out in zip(share, outs)}
-        return group_by_task(episodes, [outcome[ep] for ep in episodes])
+            results = self._per_worker_rollout(policy, shards, instructions, noise_seed, shown)
+        outcome = {ep: out for share, (outs, _) in zip(shards, results) for ep, out in zip(share, outs)}
+        recorded = {share[i]: v for share, (_, states) in zip(shards, results)
+                    for i, v in states.items()}
+        return group_by_task(episodes, [outcome[ep] for ep in episodes], recorded)
 
     def layout(self, policy) -> str:
         """Where `policy` would be rolled out: "in-process", "per-worker" or "central"."""
@@ -361,17 +416,19 @@ class Evaluator:
             central = policy_device(policy).type != "cpu"
         return "central" if central else "per-worker"
 
-    def _central_rollout(self, policy, episodes, instructions, noise_seed) -> list[tuple[bool, int]]:
+    def _central_rollout(self, policy, episodes, instructions, noise_seed, recordings,
+                         shown: Progress
+                         ) -> list[tuple[bool, int]]:
         if self._env_workers is None:
             self._env_workers = EnvWorkers(self.suite.name, self.settings, self.workers,
                                            self.torch_threads)
         return lockstep(policy, episodes, instructions, self.settings, noise_seed,
                         self._env_workers.open, self.settings.envs_per_task * self.workers,
-                        align_chunks=True)
+                        align_chunks=True, recordings=recordings, episode_done=shown.update)
 
-    def _per_worker_rollout(self, policy, shards, instructions, noise_seed
-                            ) -> list[list[tuple[bool, int]]]:
-        """Each shard's outcomes, the shards spread over the worker processes."""
+    def _per_worker_rollout(self, policy, shards, instructions, noise_seed, shown: Progress
+                            ) -> list[tuple[list[tuple[bool, int]], dict]]:
+        """Each shard's outcomes and recordings, the shards spread over the worker processes."""
         if self._pool is None:
             workers = min(self.workers, self.settings.shards)  # more would have no shard to run
             self._pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
@@ -383,6 +440,8 @@ class Evaluator:
         weights = {k: v.detach().clone() for k, v in policy.state_dict().items()}
         futures = [self._pool.submit(_worker_rollout, policy.config, weights, share, instructions,
                                      noise_seed) for share in shards]
+        for future in as_completed(futures):  # a shard's episodes count as it comes back
+            shown.update(len(shards[futures.index(future)]))
         return [future.result() for future in futures]
 
     def close(self) -> None:
@@ -417,7 +476,18 @@ def _worker_rollout(config, weights, episodes, instructions, noise_seed):
         _WORKER["policy"], _WORKER["config"] = policy_for_config(config), config
     policy = _WORKER["policy"]
     policy.load_state_dict(weights)
-    return rollout(policy, episodes, instructions, _WORKER["settings"], noise_seed, _WORKER["envs"])
+    return _rollout_recorded(policy, episodes, instructions, _WORKER["settings"], noise_seed,
+                             _WORKER["envs"])
+
+
+def _rollout_recorded(policy, episodes, instructions, settings, noise_seed, envs,
+                      align_chunks: bool = False, episode_done=None
+                      ) -> tuple[list[tuple[bool, int]], dict]:
+    """`rollout`'s outcomes, and the recorded episodes' states by episode index."""
+    states: dict[int, list] = {}
+    outcomes = rollout(policy, episodes, instructions, settings, noise_seed, envs, align_chunks,
+                       states, episode_done)
+    return outcomes, states
 
 
 def _env_worker(conn, suite_name: str, settings: EvalSettings, torch_threads: int) -> None:

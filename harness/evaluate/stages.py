@@ -18,6 +18,7 @@ from harness.config.benchmark import BenchConfig, stage_name
 from harness.data.datasets import TrainingData
 from harness.data.prepare import BenchmarkData
 from harness.evaluate.rollouts import EvalSettings, Evaluator, heldout_loss
+from harness.evaluate.videos import VideoWriter
 from methods import Method
 
 
@@ -61,7 +62,8 @@ def eval_settings(cfg: BenchConfig) -> EvalSettings:
 
 
 def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: BenchmarkData, seed: int,
-                   stage: int, task: str, method: Method | None = None) -> StageRecord:
+                   stage: int, task: str, method: Method | None = None,
+                   videos: VideoWriter | None = None) -> StageRecord:
     """Roll out every task (foundation and stream), also from the spatial probe's states when
     it is on, and measure every held-out loss.
 
@@ -69,6 +71,7 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
     the others their success is NaN (not evaluated) and their held-out loss is still measured.
     A task-aware method (PackNet) is evaluated group by group inside its `evaluation_view`: the
     foundation tasks together, then each stream task; any other method in one call, as before.
+    With `videos`, the episodes it chooses keep their states and become videos after the stage.
     """
     tasks = cfg.all_tasks()
     rolled = set(tasks if cfg.evaluates_foundation(stage) else cfg.stream_tasks)
@@ -78,6 +81,7 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
     names = [stage_name(i, group) for i, group in enumerate(stream, start=1)]
     groups = [cfg.foundation_tasks] + stream if aware else [tasks]
     results, spatial, heldout = {}, {}, {}
+    record = videos.episodes_at(stage) if videos is not None else frozenset()
     for group in (g for g in groups if g):
         # a task-aware view is per stage: the foundation's, or stream stage i's (by its name)
         view = (method.evaluation_view(policy, names[stream.index(group)] if group in stream
@@ -86,12 +90,15 @@ def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: Benchma
         rollouts = [t for t in group if t in rolled]
         with view:
             if rollouts:
-                results.update(evaluator.evaluate(policy, rollouts, data.instructions, noise_seed))
+                results.update(evaluator.evaluate(policy, rollouts, data.instructions, noise_seed,
+                                                  record=record))
                 if cfg.spatial_episodes > 0:
                     spatial.update(evaluator.evaluate(policy, rollouts, data.instructions,
                                                       noise_seed, split="spatial"))
             heldout.update({t: heldout_loss(policy, data.heldout[t], derive_seed("heldout", t))
                             for t in group})
+    if videos is not None:
+        videos.write(stage, task, results)
     nan = float("nan")
     return StageRecord(
         stage, task,

@@ -13,10 +13,12 @@ import torch
 from harness.common.device import resolve_device
 from harness.common.seeding import derive_seed, generator
 from harness.config.benchmark import BenchConfig
-from harness.data.lerobot.checkpoint import checkpoint_features
+from harness.data.lerobot.checkpoint import checkpoint_features, protocol_features
 from harness.data.prepare import BenchmarkData, demo_spec
+from harness.evaluate.recording import VideoSettings
 from harness.evaluate.rollouts import Evaluator
 from harness.evaluate.stages import StageRecord, evaluate_stage, load_checkpoint, save_checkpoint
+from harness.evaluate.videos import VideoWriter
 from harness.train.trainer import Snapshots, TrainSettings, train_stage
 from methods import Method, TaskContext
 from policies import get_policy, make_config, policy_for_config
@@ -38,11 +40,21 @@ class Foundation:
     policy_state: dict[str, torch.Tensor]
     final_loss: float
     stage0: StageRecord
+    videos: Path | None = None  # stage 0's videos (in the cache, shared by every method)
+
+
+def check_takes_a_path(cfg: BenchConfig) -> None:
+    """ValueError when `policy_path` is given to a policy that loads no checkpoint (or the policy
+    is unknown, naming the valid ones)."""
+    if cfg.policy_path and "path" not in get_policy(cfg.policy).Config.__dataclass_fields__:
+        raise ValueError(f"policy {cfg.policy!r} takes no policy_path; the LeRobot policies "
+                         f"(lerobot_pi0, lerobot_pi05, lerobot_smolvla) do")
 
 
 def policy_config(cfg: BenchConfig, suite: Suite):
     """The `cfg.policy` policy's config for this suite; ValueError on an unknown policy or size.
     Of the optional fields (policies/base.py) the harness fills those the Config declares."""
+    check_takes_a_path(cfg)
     image_keys = CAMERA_KEYS if cfg.cameras else ()
     declared = get_policy(cfg.policy).Config.__dataclass_fields__
     optional = {}
@@ -56,11 +68,10 @@ def policy_config(cfg: BenchConfig, suite: Suite):
         features = checkpoint_features(cfg, suite)
         optional["features"] = tuple(features.items())
         image_keys = tuple(k for k in image_keys if k in features)
+    elif "features" in declared and (named := protocol_features(suite, image_keys)):
+        optional["features"] = tuple(named.items())  # lerobot-eval's names (libero-lerobot)
     if "weights" in declared and cfg.policy_path:
         optional["weights"] = checkpoint_identity(cfg.policy_path)
-    if cfg.policy_path and "path" not in declared:
-        raise ValueError(f"policy {cfg.policy!r} takes no policy_path; the LeRobot policies "
-                         f"(lerobot_pi0, lerobot_pi05, lerobot_smolvla) do")
     return make_config(cfg.policy, state_dim=suite.state_dim, action_dim=suite.action_dim,
                        size=cfg.policy_size, chunk_size=cfg.chunk_size,
                        n_action_steps=cfg.n_action_steps, image_keys=image_keys,
@@ -131,18 +142,26 @@ def load_or_train_foundation(cfg: BenchConfig, suite: Suite, data: BenchmarkData
                                  cfg.weight_decay, cfg.grad_clip)
         snapshot = directory / "snapshot.pt"
         result = train_stage(ctx, Method(), settings, generator(seed, "foundation"), log,
-                             snapshots=_snapshots(snapshot, cfg, seed))
+                             snapshots=_snapshots(snapshot, cfg, seed),
+                             progress=f"foundation seed {seed}" if cfg.progress else "")
         final_loss = result.final_loss
         save_checkpoint(weights, {"policy": policy.state_dict(), "final_loss": final_loss,
                                   "config": cfg.as_dict()})
         snapshot.unlink(missing_ok=True)
-    if stage0_path.exists():
-        stage0 = StageRecord(**load_checkpoint(stage0_path))
-    else:
-        stage0 = evaluate_stage(policy, evaluator, cfg, data, seed, 0, "foundation")
-        stage0.train_loss = final_loss
-        save_checkpoint(stage0_path, stage0.as_dict())
-    return Foundation(key, policy.state_dict(), final_loss, stage0)
+    videos = VideoSettings.of(cfg)
+    videos_dir = directory / f"videos-{stage0_key(cfg, suite)}-{videos.key()}" if videos else None
+    missing_videos = videos_dir is not None and not any(videos_dir.glob("stage0.json"))
+    stage0 = StageRecord(**load_checkpoint(stage0_path)) if stage0_path.exists() else None
+    if stage0 is None or missing_videos:  # a cached record without its videos: evaluated again,
+        # the same episodes (a fixed policy, seeded noise), now recorded
+        writer = VideoWriter(suite, videos, videos_dir, cfg.eval_episodes) if videos else None
+        evaluated = evaluate_stage(policy, evaluator, cfg, data, seed, 0, "foundation",
+                                   videos=writer)
+        if stage0 is None:
+            stage0 = evaluated
+            stage0.train_loss = final_loss
+            save_checkpoint(stage0_path, stage0.as_dict())
+    return Foundation(key, policy.state_dict(), final_loss, stage0, videos_dir)
 
 
 def _snapshots(path: Path, cfg: BenchConfig, seed: int) -> Snapshots:

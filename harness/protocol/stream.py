@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from harness.common.seeding import derive_seed, generator
 from harness.config.benchmark import BenchConfig, run_key_settings, set_field, stage_name
 from harness.config.validation import check
 from harness.data.prepare import BenchmarkData
+from harness.evaluate.recording import VideoSettings
 from harness.evaluate.rollouts import Evaluator
 from harness.evaluate.stages import (
     StageRecord,
@@ -24,6 +26,7 @@ from harness.evaluate.stages import (
     load_checkpoint,
     save_checkpoint,
 )
+from harness.evaluate.videos import VideoWriter
 from harness.measure.metrics import (
     by_stage,
     core_metrics,
@@ -127,6 +130,7 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
         if resumed < k:
             print(f"[retain] {label} seed {seed}: resuming after stage {resumed} of {k}", flush=True)
     layer_rows: list[dict] = []
+    videos = run_videos(cfg, suite, foundation, out)
     settings = TrainSettings(cfg.steps_per_task, cfg.batch_size, cfg.lr, cfg.weight_decay,
                              cfg.grad_clip, (cfg.adam_beta1, cfg.adam_beta2), cfg.adam_eps)
     for stage, tasks in enumerate(cfg.stream_stages(), start=1):
@@ -143,10 +147,12 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
 
         watch = StageWatch(cfg, policy, method, evaluator, data, seed, tasks, theta0,
                            stages[-1], log)
+        shown = f"{label} seed {seed}: stage {stage}/{k} ({name})" if cfg.progress else ""
         result = train_stage(context(stage, name, data.combined(tasks)), method, settings,
-                             generator(seed, "stage", stage), log, after_step=watch)
+                             generator(seed, "stage", stage), log, after_step=watch,
+                             progress=shown)
         observed = list(dict.fromkeys(observed + observed_needs(method, policy, tasks)))
-        record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, name, method)
+        record = evaluate_stage(policy, evaluator, cfg, data, seed, stage, name, method, videos)
         record.train_loss = result.final_loss
         watch.finish(record, result.steps)
         current = snapshot(policy)
@@ -165,6 +171,20 @@ def run_stream(cfg: BenchConfig, suite: Suite, data: BenchmarkData, foundation: 
     result = RunResult(label, seed, out, stages, {}, tasks, layer_rows, observed)
     result.metrics = summary_metrics(cfg, result)
     return result
+
+
+def run_videos(cfg: BenchConfig, suite: Suite, foundation: Foundation, out: Path
+               ) -> VideoWriter | None:
+    """The run's video writer (None with videos off), its videos/ folder given stage 0's
+    videos from the foundation's cache (the same for every method of the seed)."""
+    settings = VideoSettings.of(cfg)
+    if settings is None or foundation.videos is None:
+        return None
+    directory = out / "videos"
+    directory.mkdir(parents=True, exist_ok=True)
+    for path in foundation.videos.iterdir():
+        shutil.copy2(path, directory / path.name)
+    return VideoWriter(suite, settings, directory, cfg.eval_episodes)
 
 
 # a check's success is a mean of per-task fractions, and 27 of 30 episodes over ten tasks comes

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,8 +27,9 @@ from harness.report.aggregate import (
     summarize,
 )
 from harness.report.groups import ABSTRACT_ONLY, build_rows
+from harness.report.page import RowVideos, write_page
 from harness.report.paper import REFERENCE, PaperTable, paper_columns, paper_table
-from harness.report.runs import experiment_id, load_runs, open_client
+from harness.report.runs import download_videos, experiment_id, load_runs, open_client
 from harness.report.table import (
     csv_table,
     heading,
@@ -40,7 +42,7 @@ from harness.report.table import (
 )
 from harness.track.tracking import tracking_uri
 
-OWNED = (".md", ".csv", ".tex", ".png")  # the kinds of file a build writes into the report folder
+OWNED = (".md", ".csv", ".tex", ".png", ".html")  # the kinds of file a build writes into the report folder
 
 @dataclass(frozen=True)
 class ReportSettings:
@@ -66,9 +68,28 @@ def build_report(settings: ReportSettings) -> list[Path]:
     summaries = [summarize(row, [m.key for m in columns]) for row in rows]
     paper = paper_table(rows, columns) if columns else None
     files = write_report(settings.out_dir, summaries, settings.experiment, superseded, paper)
+    markdown = [settings.out_dir / n for n in ("summary.md", "paper_table.md") if
+                settings.out_dir / n in files]  # the summary first
+    first = rows[0].runs[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        page = write_page(settings.out_dir, settings.experiment, markdown, first.foundation_tasks,
+                          first.stream_tasks, row_videos(client, rows, Path(tmp)))
+    files = sorted(files + [page])
     if settings.log_run:
         log_report_run(settings, files, n_runs=sum(len(r.runs) for r in rows))
     return files
+
+
+def row_videos(client, rows, folder: Path) -> list[RowVideos]:
+    """Each row's videos from MLflow: those of its lowest seed that logged any."""
+    found = []
+    for row in rows:
+        for run in row.runs:  # sorted by seed
+            directory = download_videos(client, run.run_id, folder / slug(row.label) / str(run.seed))
+            if directory is not None:
+                found.append(RowVideos.read(row.label, run.seed, directory))
+                break
+    return found
 
 
 def write_report(out: Path, summaries: list[RowSummary], benchmark: str,

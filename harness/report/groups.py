@@ -86,11 +86,13 @@ def settings(run: RunRecord) -> dict[str, str]:
 
 
 def label_of(run: RunRecord, varying: list[str]) -> str:
-    """The sweep point, then the settings that tell this run from others of its method and
-    point; " (abstract-only reading)" after an earlier reading of ConSFT."""
+    """The method (or the run name it was given), the sweep point, then the settings that tell
+    this run from others of its method and point; " (abstract-only reading)" after an earlier
+    reading of ConSFT."""
     s = settings(run)
     extra = ",".join(f"{k}={short_value(s.get(k, QUIET_DEFAULTS.get(k, '-')))}" for k in varying)
-    label = run_label(run.method, " ".join(part for part in (run.sweep_point, extra) if part))
+    name = s.get("label") or run.method  # a method's own run name (METHOD=checkpoints label=)
+    label = run_label(name, " ".join(part for part in (run.sweep_point, extra) if part))
     return label + (ABSTRACT_ONLY if abstract_only(run) else "")
 
 

@@ -249,3 +249,12 @@ def _layer_updates(client, run_id: str) -> list[LayerUpdate]:
         rows.append(LayerUpdate(row["layer"], int(row["numel"]), float(row["relative_l2"]),
                                 dict(sorted(fracs.items()))))
     return rows
+
+
+def download_videos(client, run_id: str, dst: Path) -> Path | None:
+    """A run's `videos/` artifacts (the MP4s and an index per stage) copied under `dst`, from
+    whatever store holds them; None when the run logged no videos."""
+    if not any(f.path == "videos" for f in client.list_artifacts(run_id)):
+        return None
+    dst.mkdir(parents=True, exist_ok=True)
+    return Path(client.download_artifacts(run_id, "videos", str(dst)))

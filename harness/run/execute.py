@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
@@ -21,6 +22,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
     then the jobs on the executor. `harness bench` runs all of a plan's; a study (harness.run.study)
     only the ones not finished yet, of several plans on one benchmark merged into one."""
     from harness.data.prepare import prepare_data, short_demos_text
+    from harness.evaluate.recording import VideoSettings
+    from harness.evaluate.videos import check_camera
     from harness.run.executors import (
         available_memory_mb,
         evaluation_worker_mb,
@@ -59,7 +62,10 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
         if note:
             print(f"[retain] {note}", flush=True)
     # the data before any run: an error in it (a truncated file, a missing task) is one line
-    # and leaves no FAILED run behind in MLflow
+    # and leaves no FAILED run behind in MLflow; so is a video camera the scenes lack
+    videos = VideoSettings.of(cfg)
+    if videos is not None:
+        check_camera(suite, videos)
     make_missing_demos(cfg, suite)
     data = prepare_data(cfg, suite)
     print(f"[retain] demos ready ({time.time() - start:.0f}s)", flush=True)
@@ -81,6 +87,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
             children.append(child)
             jobs.append(Job(variant.cfg, variant.spec, variant.params, variant.point,
                             variant.label, seed, key, child, tracking, slots.eval_workers))
+        if slots.parallel > 1:  # jobs sharing one terminal: progress as lines, not bars
+            os.environ["RETAIN_PROGRESS"] = "lines"
         executor = make_executor(cfg, slots, suite, data)
         try:
             foundations = [FoundationJob(cfg, seed, tracking, slots.eval_workers)
@@ -105,6 +113,8 @@ def execute(p: Plan, runs: list[tuple[int, Variant]], command: str) -> int:
         print(f"  MLflow: {tracker.uri} (experiment {cfg.name!r}); `make ui` to browse")
         print(f"[retain] {len(jobs)} jobs in {_duration(time.time() - start)} wall time, "
               f"{usage.text()}", flush=True)
+        if cfg.videos:  # the videos are for watching: the page that shows them, built now
+            print(f"  report page with the videos: {report_page(cfg)}", flush=True)
         status = "FINISHED"
         return 0
     except KeyboardInterrupt:
@@ -135,6 +145,16 @@ class Progress:
         left = elapsed / self.ran * (self.to_run - self.ran)
         return (f"{self.done}/{self.total}",
                 f"{_duration(elapsed)} elapsed, about {_duration(left)} left")
+
+
+def report_page(cfg: BenchConfig) -> Path:
+    """The experiment's report (`make report`), built from MLflow; its HTML page's path."""
+    from harness.report.build import ReportSettings, build_report
+    from harness.report.page import PAGE
+
+    settings = ReportSettings(experiment=cfg.name, results_dir=cfg.results_dir, log_run=False)
+    build_report(settings)
+    return (settings.out_dir / PAGE).resolve()
 
 
 def _duration(seconds: float) -> str:

@@ -151,7 +151,8 @@ class SerialExecutor:
         from harness.evaluate.stages import eval_settings
 
         self.data = data
-        self.evaluator = Evaluator(suite, eval_settings(cfg), workers, cfg.torch_threads)
+        self.evaluator = Evaluator(suite, eval_settings(cfg), workers, cfg.torch_threads,
+                                   progress=cfg.progress)
 
     def run(self, fn: Callable, jobs: list) -> Iterator[tuple[int, object]]:
         for i, job in enumerate(jobs):

@@ -111,8 +111,8 @@ def build_foundation(job: FoundationJob, evaluator=None, data=None) -> float:
     tracker = Tracker(cfg.results_dir, cfg.name, job.tracking.uri)
     curve = BatchedMetrics(tracker, job.tracking.parent_id, prefix=f"foundation_seed{job.seed}/")
     own = evaluator is None
-    with Evaluator(suite, eval_settings(cfg), job.eval_workers, cfg.torch_threads) if own \
-            else nullcontext(evaluator) as ev:
+    with Evaluator(suite, eval_settings(cfg), job.eval_workers, cfg.torch_threads,
+                   progress=cfg.progress) if own else nullcontext(evaluator) as ev:
         foundation = load_or_train_foundation(cfg, suite, data, job.seed, ev, log=curve)
     curve.flush()
     return foundation_success(cfg, foundation.stage0)
@@ -168,7 +168,8 @@ def run_job(job: Job, evaluator=None, data=None):
             log_stage(record)
 
         own = evaluator is None
-        with Evaluator(suite, eval_settings(cfg), job.eval_workers, cfg.torch_threads) if own \
+        with Evaluator(suite, eval_settings(cfg), job.eval_workers, cfg.torch_threads,
+                       progress=cfg.progress) if own \
                 else nullcontext(evaluator) as ev:
             foundation = load_or_train_foundation(cfg, suite, data, seed, ev)
             log_stage(foundation.stage0)
@@ -193,6 +194,8 @@ def run_job(job: Job, evaluator=None, data=None):
         paths = write_run_outputs(cfg, result, provenance)
         for path in paths.values():
             tracker.log_artifact(child, path)
+        if cfg.videos and (result.run_dir / "videos").is_dir():
+            tracker.log_artifacts(child, result.run_dir / "videos", "videos")
         status = "FINISHED"
         return result
     finally:

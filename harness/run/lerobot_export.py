@@ -18,11 +18,12 @@ from harness.config.benchmark import parse_overrides, resolve
 from harness.data.lerobot.writer import IMAGE_MODES, Written, write_dataset
 from suites import UnknownName, get_suite
 
-CONTROL_FPS = {"libero": 20, "libero-proprio": 20, "bimanual": 20, "metaworld": 80}
+CONTROL_FPS = {"libero": 20, "libero-proprio": 20, "libero-lerobot": 20, "bimanual": 20,
+               "metaworld": 80, "metaworld-lerobot": 80}
 """Steps per second of each suite's control (LIBERO and robosuite at 20 Hz, Meta-World's
 MuJoCo at 0.0125 s a step), the dataset's fps."""
-ROBOT_TYPES = {"libero": "panda", "libero-proprio": "panda", "bimanual": "bimanual_panda",
-               "metaworld": "sawyer"}
+ROBOT_TYPES = {"libero": "panda", "libero-proprio": "panda", "libero-lerobot": "panda",
+               "bimanual": "bimanual_panda", "metaworld": "sawyer", "metaworld-lerobot": "sawyer"}
 OWN_KEYS = ("out", "images", "fps")
 
 

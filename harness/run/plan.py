@@ -44,7 +44,7 @@ class Variant:
         """The run's name in tables and its directory under results/<benchmark>/: the sweep
         point, then any other setting that differs from the benchmark's, so runs that differ
         in what they measure never share a directory."""
-        return run_label(self.method.name, " ".join(p for p in (self.point, self.changed) if p))
+        return run_label(self.method.label, " ".join(p for p in (self.point, self.changed) if p))
 
 
 @dataclass
@@ -86,6 +86,12 @@ def plan(args: list[str]) -> Plan:
         raise RetainError(f"benchmark {cfg.name} needs at least one foundation and one stream task")
     given = parse_overrides(args)
     _cameras_for(cfg, base, given)
+    from harness.protocol.foundation import check_takes_a_path
+
+    try:
+        check_takes_a_path(cfg)  # before the checkpoint is read: the error is about the policy
+    except ValueError as exc:
+        raise RetainError(str(exc)) from None
     if cfg.policy_path:  # the checkpoint fixes its chunk and cameras, for the labels' base too
         from harness.data.lerobot.checkpoint import adopt_checkpoint, checkpoint_settings
 
@@ -96,10 +102,14 @@ def plan(args: list[str]) -> Plan:
     from harness.protocol.foundation import policy_config
 
     resolve_device(cfg.device)
-    try:
-        policy_config(cfg, suite)  # an unknown policy or size fails here, naming the valid ones
+    try:  # an unknown policy or size fails here, naming the valid ones
+        policy_settings = policy_config(cfg, suite)
     except ValueError as exc:
         raise RetainError(str(exc).splitlines()[0]) from None
+    if cfg.dry_run:
+        from harness.run.dry_run import dry_run_policy
+
+        dry_run_policy(cfg, suite)
     if cfg.method == "all":
         names = ["sft"] + [n for n in method_names() if n != "sft"]
     else:
@@ -130,6 +140,11 @@ def plan(args: list[str]) -> Plan:
             method = make_method(cls, own)
             changed = _changed(run_cfg, base, method, own, point)
             variants.append(Variant(run_cfg, method, label, _portable(name), own, changed))
+    for variant in variants:
+        try:
+            variant.method.check_setup(policy_settings, variant.cfg.num_stages)
+        except ValueError as exc:
+            raise RetainError(str(exc).splitlines()[0]) from None
     return Plan(cfg, variants)
 
 
@@ -160,9 +175,15 @@ def _changed(run_cfg: BenchConfig, base: BenchConfig, method: Method, own: dict,
     """Settings given outside GRID that change this run's results: benchmark settings away
     from the benchmark's YAML (after its profile), method hyperparameters away from defaults."""
     changed = changed_settings(run_cfg, base)
+    if "policy_path" in changed:  # its folder's name and its weights' digest, not the path
+        from policies.lerobot.checkpoint import checkpoint_identity, checkpoint_name
+
+        path = run_cfg.policy_path
+        changed["policy_path"] = f"{checkpoint_name(path)}@{checkpoint_identity(path)[:6]}"
     defaults = dataclasses.asdict(type(method.config)())
     hyper = method.hyperparameters()
-    changed.update({k: setting_text(hyper[k]) for k in own if hyper[k] != defaults.get(k)})
+    changed.update({k: setting_text(hyper[k]) for k in own
+                    if hyper[k] != defaults.get(k) and k not in method.label_omits})
     return " ".join(f"{k}={v}" for k, v in changed.items() if k not in point)
 
 

@@ -249,6 +249,11 @@ class Tracker:
     def log_artifact(self, run_id: str, path: str | Path, artifact_path: str | None = None) -> None:
         self.client.log_artifact(run_id, str(path), artifact_path)
 
+    def log_artifacts(self, run_id: str, directory: str | Path, artifact_path: str | None = None
+                      ) -> None:
+        """Every file of `directory` (a run's videos/), under `artifact_path`."""
+        self.client.log_artifacts(run_id, str(directory), artifact_path)
+
     def set_tags(self, run_id: str, tags: dict[str, str]) -> None:
         for k, v in tags.items():
             self.client.set_tag(run_id, k, v)

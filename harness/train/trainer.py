@@ -15,6 +15,7 @@ import torch
 
 from harness.common.device import autocast
 from harness.common.errors import NonFiniteLoss
+from harness.common.progress import Progress
 from harness.data.datasets import batch_to
 from harness.train.optim import ClippedAdamW, contiguous_parameters
 from methods import Method, TaskContext
@@ -77,7 +78,7 @@ def train_stage(
     ctx: TaskContext, method: Method, settings: TrainSettings, generator: torch.Generator,
     log: StepLogger | None = None, timer: PhaseTimer | None = None,
     after_step: Callable[[int], bool | None] | None = None,
-    snapshots: Snapshots | None = None,
+    snapshots: Snapshots | None = None, progress: str = "",
 ) -> TrainResult:
     """Fine-tune `ctx.policy` on `ctx.data` for `settings.steps` steps with `method`.
 
@@ -91,10 +92,16 @@ def train_stage(
     there once, batches that a method draws elsewhere (a CPU buffer) follow, and the forward
     and the method's loss run under bf16 autocast. `generator` stays a CPU generator.
 
+    A method that loads its stages' weights instead of training (`method.trains` false) gets
+    its hooks and no step.
+
     `after_step(steps_done)` runs after every step (learning curves, matched-target checks); a
     true return ends the stage there. With `log`, every step also logs the share of parameters
     whose Adam denominator is set by eps rather than by the gradient (`optim/frac_eps_dominated`,
     sqrt(v_hat) < eps): where a small loss scale makes Adam's step shrink (issue 36).
+
+    With `progress` (a description, "foundation seed 0"), the steps show as progress
+    (harness.common.progress).
 
     With `snapshots`, the stage starts from the last snapshot, if any, and takes one whenever
     `snapshots.every_seconds` have passed since the last (see `Snapshots`).
@@ -120,13 +127,15 @@ def train_stage(
     # Only with a core to spare: beside as many intra-op threads as cores, a third thread makes
     # them wait on each other (a default step took 2x as long with two threads on two cores).
     prefetch = method.prefetch_batches and torch.get_num_threads() < (os.cpu_count() or 1)
-    with contiguous_parameters(params) as flat, ThreadPoolExecutor(1) as data_thread:
+    steps = settings.steps if method.trains else 0
+    with contiguous_parameters(params) as flat, ThreadPoolExecutor(1) as data_thread, \
+            Progress(steps, progress, enabled=bool(progress), initial=done) as shown:
         optimizer = ClippedAdamW(flat, settings.lr, settings.weight_decay, settings.grad_clip,
                               settings.betas, settings.eps)
         if resumed is not None:
             optimizer.load_state_dict(resumed["optimizer"])
         next_batch: Future | None = None
-        for step in range(done, settings.steps):
+        for step in range(done, steps):
             timer.mark("other")
             if next_batch is None:
                 batch = method.sample_batch(ctx, settings.batch_size, generator)
@@ -161,6 +170,7 @@ def train_stage(
                 log(step, {"train/flow_loss": mean_loss, "train/objective": loss.item(),
                            "optim/frac_eps_dominated": optimizer.frac_eps_dominated(), **stats})
             done = step + 1
+            shown.update()
             if after_step is not None and after_step(done):
                 break
             if snapshot_due:

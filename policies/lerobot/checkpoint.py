@@ -22,6 +22,7 @@ import torch
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
+PRETRAINED_DIR = "pretrained_model"  # lerobot-train's checkpoints/<step>/pretrained_model/
 HUB_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
 
 
@@ -44,9 +45,13 @@ def checkpoint_folder(path: str) -> Path:
     """The local folder of `path`: itself, or a hub id's downloaded snapshot."""
     local = Path(path).expanduser()
     if local.is_dir():
+        if not (local / CONFIG_FILE).is_file() and (local / PRETRAINED_DIR).is_dir():
+            local = local / PRETRAINED_DIR  # lerobot-train's checkpoints/<step>/ or last/
         if not (local / CONFIG_FILE).is_file():
             raise CheckpointError(f"policy_path {path!r} is a folder without LeRobot's "
-                                  f"{CONFIG_FILE}: expected a saved LeRobot policy")
+                                  f"{CONFIG_FILE}: expected a saved LeRobot policy, or "
+                                  f"lerobot-train's checkpoints/<step>/ holding "
+                                  f"{PRETRAINED_DIR}/")
         return local.resolve()
     if not HUB_ID.match(path):
         raise CheckpointError(f"policy_path {path!r}: no such folder, and not a hub id "
@@ -95,7 +100,10 @@ def _digest(path: str, size: int, mtime_ns: int) -> str:
 
 
 def read_config(folder: Path):
-    """LeRobot's config of the checkpoint (its own class, by the file's `type`)."""
+    """LeRobot's config of the checkpoint (its own class, by the file's `type`). LeRobot's
+    config classes register their `type` when their modules are imported, which
+    `lerobot.policies` does: without it a fresh process knows no policy type at all."""
+    import lerobot.policies  # noqa: F401 - registers PI0Config, PI05Config, SmolVLAConfig, ...
     from lerobot.configs import PreTrainedConfig
 
     try:
@@ -117,6 +125,8 @@ class CheckpointSpec:
     state: tuple[str, int] | None  # (feature name, width)
     images: dict[str, tuple[int, int, int]]  # feature name -> (C, H, W)
     action_dim: int
+    max_state_dim: int | None = None  # LeRobot pads state and actions up to these, never down
+    max_action_dim: int | None = None
 
 
 def checkpoint_spec(path: str) -> CheckpointSpec:
@@ -132,8 +142,22 @@ def checkpoint_spec(path: str) -> CheckpointSpec:
                if f.type is FeatureType.ACTION]
     if not actions:
         raise CheckpointError(f"checkpoint {path!r} declares no action output feature")
+    pads = [getattr(config, name, None) for name in ("max_state_dim", "max_action_dim")]
     return CheckpointSpec(config.type, int(config.chunk_size), int(config.n_action_steps),
-                          states[0] if states else None, images, actions[0])
+                          states[0] if states else None, images, actions[0],
+                          *(int(p) if p is not None else None for p in pads))
+
+
+def checkpoint_name(path: str) -> str:
+    """A checkpoint's short name for labels: a hub id as it is, a folder by its own name, and
+    lerobot-train's `<run>/checkpoints/<step>/pretrained_model` as `<run>-<step>` (its folder
+    names alone say nothing)."""
+    if not Path(path).expanduser().is_dir() and HUB_ID.match(path):
+        return path
+    folder = checkpoint_folder(path)
+    if folder.name == PRETRAINED_DIR and folder.parent.parent.name == "checkpoints":
+        return f"{folder.parents[2].name}-{folder.parent.name}"
+    return folder.name
 
 
 def check_loaded(model: torch.nn.Module, folder: Path) -> None:
@@ -165,3 +189,28 @@ def check_loaded(model: torch.nn.Module, folder: Path) -> None:
         raise CheckpointError(f"checkpoint {folder}: {len(missing)} weights of the model are "
                               f"not in {WEIGHTS_FILE} (e.g. {missing[0]}): they would stay "
                               f"random")
+
+
+def weights_layout(folder: Path) -> dict[str, tuple[int, ...]]:
+    """Every tensor's name and shape in the weights file, read from its header alone."""
+    from safetensors import safe_open
+
+    with safe_open(str(weights_file(folder)), "pt") as f:
+        return {name: tuple(f.get_slice(name).get_shape()) for name in f.keys()}
+
+
+def stage_mismatch(base: str, other: str) -> str | None:
+    """How checkpoint `other` differs from `base` where a fine-tune of it may not (its type,
+    features, chunk, the names and shapes of its weights), as the end of a sentence; None when
+    it is the same architecture."""
+    a, b = checkpoint_spec(base), checkpoint_spec(other)
+    for field in ("kind", "state", "images", "action_dim", "chunk_size", "n_action_steps"):
+        if getattr(a, field) != getattr(b, field):
+            return (f"has {field} {getattr(b, field)!r}, the base's is {getattr(a, field)!r}: "
+                    f"a fine-tune keeps its base's architecture and features")
+    ours, theirs = weights_layout(checkpoint_folder(base)), weights_layout(checkpoint_folder(other))
+    for name in sorted(set(ours) | set(theirs)):
+        if ours.get(name) != theirs.get(name):
+            return (f"has weights of another architecture than the base's ({name}: "
+                    f"{theirs.get(name, 'missing')} against {ours.get(name, 'missing')})")
+    return None

@@ -17,6 +17,7 @@ is [B, H, noise_dim] (`policies.base.noise_shape`); the suite's A dimensions com
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import logging
@@ -191,6 +192,11 @@ class LeRobotPolicy(nn.Module):
         overrides = {"device_processor": {"device": "cpu"}}
         if self._tokenizer is not None:
             overrides["tokenizer_processor"] = {"tokenizer": self._tokenizer}
+        elif self.config.path and (checkpoint_folder(self.config.path) / VLM_DIR).is_dir():
+            # SmolVLA's tokenizer is its VLM's, kept inside the folder (save_folder); the saved
+            # processor still names the scratch folder it was made from, gone with its policy
+            vlm = str(checkpoint_folder(self.config.path) / VLM_DIR)
+            overrides["tokenizer_processor"] = {"tokenizer_name": vlm}
         try:
             with _quiet():
                 if self.config.path:
@@ -336,6 +342,12 @@ class LeRobotPolicy(nn.Module):
         return post(actions).to(self.device)
 
     # -- a checkpoint folder ----------------------------------------------------------------
+
+    def load_checkpoint_weights(self, path: str) -> None:
+        """Another checkpoint of this architecture (a fine-tune of this one) into this policy:
+        its weights and its processors' statistics, loaded and checked as `policy_path` is."""
+        other = type(self)(dataclasses.replace(self.config, path=path))
+        self.load_state_dict(other.state_dict())
 
     def save_folder(self, folder: str | Path) -> Path:
         """This policy as one checkpoint folder that `policy_path=` loads (and LeRobot reads):

@@ -25,6 +25,7 @@ from suites.bimanual.tasks import TASKS
 from suites.bimanual.world import read_world
 from suites.render import FAST, RenderSettings, apply_to_robosuite, check_render
 from suites.robosuite_common import seed_env, upright
+from suites.views import robosuite_draw, robosuite_state
 
 MAX_OBJECTS = 3
 RENDER = {"faithful": RenderSettings(), "fast": FAST}  # render modes (suites/render.py)
@@ -92,6 +93,12 @@ class BimanualEnv(TaskEnv):
         assert self._script is not None, "reset() first"
         return self._script.act(self._world)
 
+    def view_state(self) -> np.ndarray:
+        return robosuite_state(self._env.sim)
+
+    def render_state(self, state: np.ndarray, camera: str, size: int) -> np.ndarray:
+        return robosuite_draw(self._env.sim, state, camera or AGENTVIEW_CAMERA, size, "bimanual")
+
     def close(self) -> None:
         self._env.close()
 
@@ -138,6 +145,7 @@ def state_vector(world, spec) -> np.ndarray:
 
 @register_suite("bimanual")
 class BimanualSuite(TaskTableSuite):
+    video_camera = AGENTVIEW_CAMERA
     state_dim = STATE_DIM
     action_dim = ACTION_DIM
     max_episode_steps = 400  # 20 s at 20 Hz; the slowest expert needs about half

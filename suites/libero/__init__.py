@@ -25,6 +25,7 @@ class LiberoSuite(Suite):
     # evaluation does (the OSC controller's nullspace target is LIBERO's home pose; env.py)
     evaluation_version = "2"
     simulator_mb = (180.0, 325.0)  # make bench-envs BENCH=libero-paper: 179 MB, 322 with cameras
+    video_camera = "agentview"
 
     def __init__(self):
         super().__init__()

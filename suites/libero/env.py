@@ -38,7 +38,7 @@ from xml.etree import ElementTree
 import numpy as np
 
 import suites.robosuite_quiet  # noqa: F401  (before any robosuite import)
-from suites.base import Observation, StepResult, SuiteError, TaskEnv, is_spatial
+from suites.base import AGENTVIEW, Observation, StepResult, SuiteError, TaskEnv, is_spatial
 from suites.libero.fast_step import FastStepper, Unsupported
 from suites.libero.install import ensure_installed
 from suites.libero.tasks import (
@@ -52,6 +52,7 @@ from suites.libero.tasks import (
     init_states,
 )
 from suites.render import FAST, RenderSettings, apply_to_robosuite, check_render
+from suites.views import robosuite_draw, robosuite_state
 
 FRESH_PLACEMENT = 1 << 30
 SPATIAL_OFFSET = (0.03, 0.06)  # m: how far the spatial probe moves an object (x, y), at least/most
@@ -341,6 +342,18 @@ class LiberoTaskEnv(TaskEnv):
     def sim_state(self) -> np.ndarray:
         """The flattened MuJoCo state, LIBERO's `states` (and init-state) format."""
         return np.asarray(self.env.get_sim_state())
+
+    def view_state(self) -> np.ndarray:
+        """`sim_state` and every body's pose in the model: LIBERO places its fixtures by writing
+        their poses into the model at each reset, and the qpos alone would draw another scene's."""
+        return robosuite_state(self.env.sim, bodies=True)
+
+    def render_state(self, state: np.ndarray, camera: str, size: int) -> np.ndarray:
+        """A recorded state drawn by robosuite's renderer (this env needs cameras on: without,
+        its textures were dropped)."""
+        if not self.cameras:
+            raise SuiteError("a LIBERO env draws video frames only when built with cameras")
+        return robosuite_draw(self.env.sim, state, camera or CAMERAS[AGENTVIEW], size, "libero")
 
     def observation_from_sim_state(self, state: np.ndarray) -> Observation:
         """The observation at a recorded sim state (reading a LIBERO dataset file's `states`)."""

@@ -46,6 +46,7 @@ _ACTION_DIM = 4
 # observation key -> (Meta-World camera, whether its image must be turned by 180 degrees)
 _CAMERAS = {AGENTVIEW: ("corner", True), EYE_IN_HAND: ("gripperPOV", False)}
 _SHADOW_MAP_SIZE = 1024
+_TURNED = {"corner", "corner2", "corner3"}  # cameras Meta-World mounts upside down
 # render modes (suites/render.py): faithful draws everything (reflections off moved 0.03/255)
 RENDER = {"faithful": RenderSettings(), "fast": FAST}
 WIDEN = 2.0  # the spatial probe's x and y ranges: this many times the task's own, same centre
@@ -77,6 +78,8 @@ class MetaWorldEnv(TaskEnv):
         self._obs: np.ndarray | None = None
         self._allowance: dict | None = None  # the spatial probe's, made at its first reset
         self._renderer = None
+        self._view = None  # draws recorded states for videos (render_state)
+        self.render = RENDER[check_render(render)]
         if cameras:
             import mujoco
 
@@ -84,7 +87,6 @@ class MetaWorldEnv(TaskEnv):
             # Meta-World's 4096^2 shadow map costs more than the image itself at these sizes
             # (twice the render time on a CPU); 1024^2 gives the same shadows at a few hundred pixels
             model.vis.quality.shadowsize = min(model.vis.quality.shadowsize, _SHADOW_MAP_SIZE)
-            self.render = RENDER[check_render(render)]
             apply_to_model(model, self.render)
             self._renderer = mujoco.Renderer(model, image_size, image_size)
             apply_to_scene(self._renderer.scene, self.render)
@@ -171,9 +173,28 @@ class MetaWorldEnv(TaskEnv):
         assert self._obs is not None, "reset() first"
         return np.clip(self._expert.get_action(self._obs), -1.0, 1.0).astype(np.float32)
 
+    def view_state(self) -> np.ndarray:
+        from suites.views import mujoco_state
+
+        return mujoco_state(self._env.model, self._env.data)
+
+    def render_state(self, state: np.ndarray, camera: str, size: int) -> np.ndarray:
+        from suites.views import MujocoView, check_camera
+
+        camera = check_camera(self._env.model, camera or _CAMERAS[AGENTVIEW][0], "metaworld")
+        if self._view is None:
+            model = self._env.model
+            model.vis.quality.shadowsize = min(model.vis.quality.shadowsize, _SHADOW_MAP_SIZE)
+            apply_to_model(model, self.render)
+            self._view = MujocoView(model, self._env.data, self.render)
+        image = self._view.draw(state, camera, size)
+        return np.ascontiguousarray(image[::-1, ::-1]) if camera in _TURNED else image
+
     def close(self) -> None:
         if self._renderer is not None:
             self._renderer.close()
+        if self._view is not None:
+            self._view.close()
         self._env.close()
 
 
@@ -197,6 +218,7 @@ def widened_box(low: np.ndarray, high: np.ndarray, hand_low: np.ndarray, hand_hi
 
 @register_suite("metaworld")
 class MetaWorldSuite(Suite):
+    video_camera = _CAMERAS[AGENTVIEW][0]
     state_dim = _STATE_DIM
     action_dim = _ACTION_DIM
     max_episode_steps = 500  # Meta-World's own limit; benchmarks usually set less

@@ -12,10 +12,17 @@ import functools
 
 from harness.common.errors import RetainError
 from harness.config.benchmark import BenchConfig
+from harness.data.lerobot.eval_env import trained_env
 from harness.data.lerobot.reader import CONVENTIONS, PROPRIO_HINT, key_overrides
-from policies.lerobot.checkpoint import CheckpointError, CheckpointSpec, checkpoint_spec
+from policies.lerobot.checkpoint import (
+    CheckpointError,
+    CheckpointSpec,
+    checkpoint_folder,
+    checkpoint_spec,
+)
 from suites import Suite
 from suites.base import CAMERA_KEYS
+from suites.lerobot_protocol import LeRobotProtocolSuite
 
 # the settings a checkpoint fixes, which a command line may not set otherwise
 FIXED_BY_CHECKPOINT = ("chunk_size", "n_action_steps", "cameras", "image_size")
@@ -35,6 +42,9 @@ def checkpoint_features(cfg: BenchConfig, suite: Suite) -> dict[str, str]:
     s = spec(cfg.policy_path)
     where = f"policy_path {cfg.policy_path!r}"
     overrides = key_overrides(cfg)
+    if cfg.lerobot_rotate_images and isinstance(suite, LeRobotProtocolSuite):
+        raise RetainError(f"lerobot_rotate_images=true with suite {suite.name!r}, whose images "
+                          f"are already turned as lerobot-eval turns them: leave it false")
     if s.action_dim != suite.action_dim:
         raise RetainError(f"{where} acts in {s.action_dim} dimensions; suite {suite.name!r} "
                           f"takes {suite.action_dim}")
@@ -45,13 +55,20 @@ def checkpoint_features(cfg: BenchConfig, suite: Suite) -> dict[str, str]:
     if "state" in overrides and overrides["state"] != state:
         raise RetainError(f"{where} has no state feature {overrides['state']!r} (lerobot_keys); "
                           f"its state is {state!r}")
+    for kind, wide, pad in (("state", suite.state_dim, s.max_state_dim),
+                            ("action", suite.action_dim, s.max_action_dim)):
+        if pad is not None and wide > pad:
+            raise RetainError(f"{where} pads its {kind} to max_{kind}_dim={pad}, and suite "
+                              f"{suite.name!r}'s {kind} is {wide}-D: LeRobot pads up, never "
+                              f"down (train it with max_{kind}_dim >= {wide})")
     if width != suite.state_dim:
         raise RetainError(f"{where}'s {state!r} is {width}-D; suite {suite.name!r} gives "
                           f"{suite.state_dim}-D{PROPRIO_HINT.get((suite.name, width), '')}")
     features = {"state": state}
     for name, shape in s.images.items():
         key = next((k for k in CAMERA_KEYS if overrides.get(k) == name), None) or next(
-            (k for k in CAMERA_KEYS if k not in overrides and name in CONVENTIONS[k]), None)
+            (k for k in CAMERA_KEYS if k not in overrides and name in conventions(suite, k)),
+            None)
         if key is None or key in features:
             raise RetainError(f"{where}'s image feature {name!r} is none of the suite's cameras "
                               f"({', '.join(CAMERA_KEYS)}); name it with lerobot_keys="
@@ -67,16 +84,53 @@ def checkpoint_features(cfg: BenchConfig, suite: Suite) -> dict[str, str]:
     return features
 
 
+def conventions(suite: Suite, key: str) -> tuple[str, ...]:
+    """The feature names that are Retain's `key`: under lerobot-eval's protocol LeRobot's own
+    name for it first (Meta-World's `observation.image`), then the datasets' conventions."""
+    own = suite.lerobot.feature(key) if isinstance(suite, LeRobotProtocolSuite) else None
+    return ((own,) if own else ()) + CONVENTIONS[key]
+
+
+def protocol_features(suite: Suite, image_keys: tuple[str, ...]) -> dict[str, str] | None:
+    """A random init's feature names under lerobot-eval's protocol (LeRobot's, where it names
+    the camera), so the folder it saves reads as a LeRobot checkpoint of that env; None for a
+    suite of Retain's own conventions."""
+    if not isinstance(suite, LeRobotProtocolSuite):
+        return None
+    return {k: suite.lerobot.feature(k) or f"observation.images.{k}"
+            for k in ("state", *image_keys)}
+
+
+def render_size(cfg: BenchConfig, suite: Suite, trained: int) -> int:
+    """The size the suite renders a checkpoint's cameras at: under lerobot-eval's protocol the
+    size lerobot-eval renders (the checkpoint's train_config.json env section, else LeRobot's
+    default for the env; the policy's processors resize to its own resolution, as in
+    lerobot-eval), otherwise the size it was trained at."""
+    if not isinstance(suite, LeRobotProtocolSuite):
+        return trained
+    try:
+        env = trained_env(checkpoint_folder(cfg.policy_path))
+    except (ValueError, CheckpointError) as exc:
+        raise RetainError(str(exc)) from None
+    if env is None:
+        return suite.lerobot.image_size
+    if env.env_type != suite.lerobot.env_type:
+        raise RetainError(f"policy_path {cfg.policy_path!r} was trained for LeRobot's "
+                          f"{env.env_type!r} env ({env.task}); suite {suite.name!r} is "
+                          f"lerobot-eval's {suite.lerobot.env_type!r}")
+    return env.image_size or suite.lerobot.image_size
+
+
 def checkpoint_settings(cfg: BenchConfig, suite: Suite) -> dict:
     """The benchmark settings the checkpoint fixes: its chunk, n_action_steps, and its cameras
-    at their resolution."""
+    at their resolution (`render_size`)."""
     s = spec(cfg.policy_path)
     features = checkpoint_features(cfg, suite)
     cameras = [k for k in CAMERA_KEYS if k in features]
     settings = {"chunk_size": s.chunk_size, "n_action_steps": s.n_action_steps,
                 "cameras": bool(cameras)}
     if cameras:
-        settings["image_size"] = s.images[features[cameras[0]]][1]
+        settings["image_size"] = render_size(cfg, suite, s.images[features[cameras[0]]][1])
     return settings
 
 
