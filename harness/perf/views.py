@@ -46,18 +46,10 @@ def views(env) -> list:
                 return renderer.render()
             return one
         return [draw(camera) for camera, _ in _CAMERAS.values()]
-    sim = robosuite_env.sim
+    sim = robosuite_env.sim  # each env draws in its own GL context (suites/render.py)
     size = robosuite_env.camera_heights[0]
-
-    def draw_robosuite(camera):
-        def one():
-            # robosuite draws with whichever GL context is current, and each env has its own:
-            # with two envs in a process, a view drawn in the other's context came out wrong
-            # (mean 52.8/255 apart on LIBERO). So its own first.
-            sim._render_context_offscreen.gl_ctx.make_current()
-            return sim.render(width=size, height=size, camera_name=camera)
-        return one
-    return [draw_robosuite(camera) for camera in robosuite_env.camera_names]
+    return [lambda camera=camera: sim.render(width=size, height=size, camera_name=camera)
+            for camera in robosuite_env.camera_names]
 
 
 def measure_views(suite_name: str, tasks: list[str], frames: int = 100, image_size: int = 128,
