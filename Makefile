@@ -80,16 +80,18 @@ bench-eval: $(STAMP)
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
 		$(if $(device),--device $(device))
 
-# make bench-envs [BENCH=libero-paper] [TASKS=12] [cameras=true image_size=128] [STEPS=200] [RESETS=10]:
+# make bench-envs [BENCH=libero-paper] [TASKS=12] [cameras=true image_size=128] [STEPS=200] [RESETS=10] [VIEWS=100]:
 # the memory and build time of a benchmark's simulators, one per task as an evaluation holds them;
 # then, on LIBERO, its first task's control step: the physics alone, robosuite's path and the fast
 # path, side by side (and with cameras=true the same with both cameras rendering; STEPS=0 skips
 # it), how far its joint positions move when the controls are off in their last bits, and a fresh
-# scene's reset by robosuite's reload and in place
+# scene's reset by robosuite's reload and in place; then, for LIBERO, Meta-World and bimanual, a
+# camera view's milliseconds at render=faithful and render=fast and their images' difference over
+# VIEWS frames (default 100; 0 skips it)
 bench-envs: $(STAMP)
 	$(PY) -m harness.perf.throughput envs --bench $(or $(BENCH),libero-paper) $(if $(TASKS),--tasks $(TASKS)) \
 		$(if $(filter true,$(cameras)),--cameras --image-size $(or $(image_size),128)) \
-		$(if $(STEPS),--steps $(STEPS)) $(if $(RESETS),--resets $(RESETS))
+		$(if $(STEPS),--steps $(STEPS)) $(if $(RESETS),--resets $(RESETS)) $(if $(VIEWS),--view-frames $(VIEWS))
 
 # every CUDA path end to end on a tiny budget, a PASS or FAIL line and a figure per part (pi0 at
 # batch 64: samples/s and MFU; evaluation with two 128-px cameras; a GPU run killed and resumed):

@@ -109,9 +109,11 @@ class Suite(ABC):
     def instruction(self, task: str) -> str: ...
 
     @abstractmethod
-    def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv:
+    def make_env(self, task: str, cameras: bool = False, image_size: int = 84,
+                 render: str = "faithful") -> TaskEnv:
         """The task's simulator; with `cameras` its observations hold the `CAMERA_KEYS` images
-        at `image_size` x `image_size`, and without, nothing is rendered."""
+        at `image_size` x `image_size`, drawn as `render` says (suites/render.py), and without,
+        nothing is rendered."""
 
     def check_task(self, task: str) -> str:
         if task not in self.task_names():

@@ -13,6 +13,7 @@ import mujoco
 import numpy as np
 
 from suites.base import SuiteError
+from suites.render import RenderSettings, apply_to_scene
 
 STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # qpos, qvel, act, mocap, time, ctrl, warmstart
 
@@ -40,8 +41,8 @@ def mujoco_state(model, data) -> np.ndarray:
 class MujocoView:
     """Draws states of one MuJoCo model with `mujoco.Renderer`, one renderer per size."""
 
-    def __init__(self, model, data):
-        self.model, self.data = model, data
+    def __init__(self, model, data, settings: RenderSettings | None = None):
+        self.model, self.data, self.settings = model, data, settings
         self._renderers: dict[int, mujoco.Renderer] = {}
 
     def draw(self, state: np.ndarray, camera: str, size: int) -> np.ndarray:
@@ -49,6 +50,8 @@ class MujocoView:
         mujoco.mj_forward(self.model, self.data)
         if size not in self._renderers:
             self._renderers[size] = mujoco.Renderer(self.model, size, size)
+            if self.settings is not None:  # the env's render mode (suites/render.py)
+                apply_to_scene(self._renderers[size].scene, self.settings)
         renderer = self._renderers[size]
         renderer.update_scene(self.data, camera=camera)
         return renderer.render()

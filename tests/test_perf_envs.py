@@ -29,7 +29,7 @@ def test_bench_envs_on_libero_prints_the_control_step_beside_its_physics(capsys)
     """On LIBERO the memory line is followed by the first task's control step on each path,
     how far a last-bit change in its controls moves it, then a fresh scene's reset both ways."""
     assert main(["envs", "--bench", "libero-spatial", "--tasks", "1", "--steps", "2",
-                 "--resets", "1"]) == 0
+                 "--resets", "1", "--view-frames", "0"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 7 and lines[0].startswith("1 of libero-spatial's libero simulators")
     assert re.fullmatch(r"control step of \w+ \(2 seeded random steps from init state 0\), "
@@ -61,3 +61,17 @@ def test_a_nudge_in_the_controls_moves_the_trajectory_and_none_leaves_it_alone()
         assert "step2" not in vars(env.env.sim)  # the class's method again
     finally:
         env.close()
+
+
+def test_bench_views_prints_both_render_modes_and_their_difference(capsys):
+    """The camera-view table: a view's milliseconds both ways and fast's image difference."""
+    from harness.perf.views import measure_views, print_views
+
+    figures = measure_views("metaworld", ["reach-v3", "pick-place-v3"], frames=8, image_size=64)
+    assert figures.frames == 8 and all(ms > 0 for ms in figures.ms.values())
+    assert 0 < figures.mean_abs.mean() < 20 and 0 < figures.max_abs.max() <= 255
+    assert 15 < figures.psnr < 60
+    print_views([figures], 64)
+    row = capsys.readouterr().out.strip().splitlines()[-1]
+    assert re.fullmatch(r"\| metaworld \| 8 \| [\d.]+ \| [\d.]+ \| [\d.]+x \| [\d., ]+ \| "
+                        r"[\d, ]+ \| [\d.]+ \|", row), row

@@ -64,6 +64,9 @@ class BenchConfig:
     n_action_steps: Annotated[int, Ge(1), AtMost("chunk_size")] = 4
     cameras: bool = False
     image_size: Annotated[int, Ge(1)] = 84
+    # how camera views are drawn (suites/render.py): the suites' own images, or fast ones a few
+    # times cheaper on a CPU and slightly apart; nothing without cameras
+    render: Literal["faithful", "fast"] = "faithful"
     profile: Literal["", "quick", "standard", "tiny", "paper"] = ""
     seed: Annotated[int, Ge(0)] = 0  # first seed
     seeds: Annotated[int, Ge(1)] = 1  # number of seeds: seed, seed + 1, ...
@@ -182,7 +185,7 @@ SHARED_BY_SWEEP_POINTS = frozenset({
     "heldout_demos_per_task", "eval_episodes", "foundation_eval_every", "max_episode_steps",
     "eval_step_cap",
     "foundation_steps", "foundation_lr", "policy_size", "chunk_size", "n_action_steps", "cameras",
-    "image_size", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
+    "image_size", "render", "profile", "seed", "seeds", "method", "results_dir", "cache_dir", "progress",
     "dry_run",
     "torch_threads", "eval_workers", "eval_envs_per_task", "eval_shards", "executor", "jobs",
     "policy", "policy_path", "device", "compile", "stage_sizes", "check_episodes", "heldout_groups",
@@ -203,17 +206,23 @@ QUIET_DEFAULTS: dict[str, Any] = {
     "spatial_episodes": 0, "eval_shards": 2, "foundation_eval_every": 1, "stage_sizes": [],
     "until_success": 0.0, "check_every": 250, "check_episodes": 10, "adam_beta1": 0.9,
     "adam_beta2": 0.999, "adam_eps": 1e-8, "heldout_groups": {}, "lerobot_keys": "",
-    "lerobot_tasks": "", "lerobot_rotate_images": False, "policy_path": "", "eval_step_cap": 0}
+    "lerobot_tasks": "", "lerobot_rotate_images": False, "policy_path": "", "eval_step_cap": 0,
+    "render": "faithful"}
 
 
 def run_key_settings(cfg: BenchConfig) -> dict[str, Any]:
     """The settings a run's results depend on (what its run key hashes)."""
     return {k: v for k, v in cfg.as_dict().items()
-            if k not in NOT_IN_RUN_KEY and not (k in QUIET_DEFAULTS and v == QUIET_DEFAULTS[k])}
+            if k not in NOT_IN_RUN_KEY and not (k in QUIET_DEFAULTS and v == QUIET_DEFAULTS[k])
+            and not (k == "render" and not cfg.cameras)}  # no image, nothing rendered
 
 
 def check_protocol(cfg: BenchConfig) -> None:
     """The settings of the paper's protocol that only make sense together."""
+    if cfg.render != "faithful" and cfg.policy_path:
+        raise RetainError(f"render={cfg.render} with policy_path={cfg.policy_path}: a published "
+                          "checkpoint is evaluated on the images it was trained on; leave "
+                          "render=faithful")
     if cfg.stage_sizes and sum(cfg.stage_sizes) != len(cfg.stream_tasks):
         raise RetainError(f"bad value {cfg.stage_sizes} for stage_sizes: expected sizes that add "
                           f"up to the {len(cfg.stream_tasks)} stream tasks")
@@ -355,7 +364,8 @@ def changed_settings(cfg: BenchConfig, base: BenchConfig) -> dict[str, str]:
     YAML after its profile): what tells a run with `lr=1e-4` from one at the defaults."""
     ours, theirs = cfg.as_dict(), base.as_dict()
     return {k: setting_text(v) for k, v in ours.items()
-            if k not in NOT_IN_RUN_KEY and k not in ("name", "method_params") and v != theirs[k]}
+            if k not in NOT_IN_RUN_KEY and k not in ("name", "method_params") and v != theirs[k]
+            and not (k == "render" and not cfg.cameras)}
 
 
 def experiment_name(bench: str, profile: str) -> str:

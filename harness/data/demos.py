@@ -30,6 +30,7 @@ from harness.common.atomic import atomic_path
 from harness.common.errors import DemoFileError
 from suites import Suite
 from suites.base import run_expert_episode
+from suites.render import render_argument
 
 FORMAT_VERSION = 1
 MAX_ATTEMPTS_PER_DEMO = 4  # experts fail ~5% of the time; give up well before looping forever
@@ -60,11 +61,14 @@ class DemoSpec:
     image_size: int = 84
     format_version: int = FORMAT_VERSION
     source: str = ""  # the user's demos_dir where demos come from files, not the expert
+    render: str = "faithful"  # how the images are drawn (suites/render.py); faithful without cameras
 
     def key(self) -> str:
         fields = asdict(self)
         if not self.source:  # keys made before `source` existed stay valid
             del fields["source"]
+        if self.render == "faithful":  # and those made before `render`, whose images it draws
+            del fields["render"]
         blob = json.dumps(fields, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -86,7 +90,8 @@ def generate_demos(suite: Suite, spec: DemoSpec, progress: bool = True) -> list[
     """Run the task's expert on its seeded episodes until `num_demos` succeed."""
     from tqdm import tqdm
 
-    env = suite.make_env(spec.task, cameras=spec.cameras, image_size=spec.image_size)
+    env = suite.make_env(spec.task, cameras=spec.cameras, image_size=spec.image_size,
+                         **render_argument(spec.render))
     seeds = suite.episode_keys(spec.task, spec.split, spec.num_demos * MAX_ATTEMPTS_PER_DEMO)
     episodes: list[Episode] = []
     bar = tqdm(total=spec.num_demos, desc=f"demos {spec.task} ({spec.split})", disable=not progress,

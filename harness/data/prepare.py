@@ -21,6 +21,7 @@ from harness.data.demos import (
 )
 from policies.text_encoder import embed_instructions, tokenize_instructions
 from suites import Suite, get_suite
+from suites.render import check_suite_renders
 
 
 @dataclass
@@ -42,11 +43,17 @@ class BenchmarkData:
 
 
 def demo_spec(cfg: BenchConfig, suite: Suite, task: str, split: str) -> DemoSpec:
+    if cfg.cameras:  # at plan time: every key needs its demos' spec
+        try:
+            check_suite_renders(suite, cfg.render)
+        except ValueError as exc:
+            raise RetainError(str(exc)) from None
     n = cfg.demos_per_task if split == "demo" else cfg.heldout_demos_per_task
     return DemoSpec(suite=suite.name, suite_version=suite.version(task), task=task, split=split,
                     num_demos=n, max_episode_steps=suite.step_limit(task, cfg.max_episode_steps),
                     cameras=cfg.cameras, image_size=cfg.image_size,
-                    source=user_file(cfg, suite, task) if cfg.demos_dir else "")
+                    source=user_file(cfg, suite, task) if cfg.demos_dir else "",
+                    render=cfg.render if cfg.cameras else "faithful")
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ class VideoSettings:
     size: int  # pixels, square
     camera: str  # "" for the suite's own view of the workspace
     fps: int
+    render: str = "faithful"  # how frames are drawn (suites/render.py), as the cameras are
 
     @classmethod
     def of(cls, cfg: BenchConfig) -> VideoSettings | None:
@@ -39,7 +40,7 @@ class VideoSettings:
         chosen = set(cfg.video_tasks or cfg.all_tasks())
         return cls(tuple(t for t in cfg.all_tasks() if t in chosen),
                    tuple(tuple(s) for s in cfg.stream_stages()), cfg.video_episodes,
-                   cfg.video_size, cfg.video_camera, cfg.video_fps)
+                   cfg.video_size, cfg.video_camera, cfg.video_fps, cfg.render)
 
     def episodes_at(self, stage: int) -> frozenset[tuple[str, int]]:
         """(task, episode index) of the episodes recorded after `stage`."""

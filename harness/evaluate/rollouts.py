@@ -38,6 +38,7 @@ from harness.common.seeding import generator
 from harness.data.datasets import TrainingData, instruction_entries
 from policies.base import noise_shape
 from suites import Observation, StepResult, Suite, get_suite
+from suites.render import render_argument
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,7 @@ class EvalSettings:
     n_action_steps: int
     cameras: bool = False
     image_size: int = 84
+    render: str = "faithful"  # how the images are drawn (suites/render.py)
     envs_per_task: int = 2  # simulators per task and worker; their episodes run one after another
     shards: int = 2  # interleaved shares of the episodes, each its own lockstep (on the CPU)
     spatial_episodes: int = 0  # per task, of the spatial probe's split (widened initial states)
@@ -97,7 +99,8 @@ class EnvCache:
     def for_task(self, task: str, n: int) -> list:
         pool = self.envs.setdefault(task, [])
         while len(pool) < n:
-            pool.append(self.suite.make_env(task, self.settings.cameras, self.settings.image_size))
+            pool.append(self.suite.make_env(task, self.settings.cameras, self.settings.image_size,
+                                            **render_argument(self.settings.render)))
         return pool[:n]
 
     def close(self) -> None:

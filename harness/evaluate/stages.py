@@ -54,7 +54,8 @@ class StageRecord:
 def eval_settings(cfg: BenchConfig) -> EvalSettings:
     return EvalSettings(episodes=cfg.eval_episodes, max_episode_steps=cfg.max_episode_steps,
                         n_action_steps=cfg.n_action_steps, cameras=cfg.cameras,
-                        image_size=cfg.image_size, envs_per_task=cfg.eval_envs_per_task,
+                        image_size=cfg.image_size, render=cfg.render,
+                        envs_per_task=cfg.eval_envs_per_task,
                         shards=cfg.eval_shards, spatial_episodes=cfg.spatial_episodes,
                         check_episodes=cfg.check_episodes if cfg.until_success > 0 else 0,
                         step_cap=cfg.eval_step_cap)

@@ -21,6 +21,7 @@ from harness.common.atomic import atomic_path
 from harness.evaluate.recording import VideoEntry, VideoSettings, write_index
 from harness.evaluate.rollouts import TaskEvaluation
 from suites import Suite
+from suites.render import render_argument
 
 GREEN, RED, WHITE, GREY = (80, 220, 100), (240, 80, 70), (255, 255, 255), (170, 170, 170)
 
@@ -81,7 +82,7 @@ def check_camera(suite: Suite, settings: VideoSettings) -> None:
     """Draw one frame of the first video task now, so that a camera the scene lacks is a
     one-line error before the run, not after its foundation is trained."""
     task = settings.tasks[0]
-    env = suite.make_env(task, cameras=True, image_size=32)
+    env = suite.make_env(task, cameras=True, image_size=32, **render_argument(settings.render))
     try:
         env.reset(suite.episode_keys(task, "eval", 1)[0])
         env.render_state(env.view_state(), settings.camera, 32)
@@ -107,7 +108,8 @@ class VideoWriter:
             if not result.recordings:
                 continue
             keys = self.suite.episode_keys(task, "eval", self.eval_episodes)
-            env = self.suite.make_env(task, cameras=True, image_size=self.settings.size)
+            env = self.suite.make_env(task, cameras=True, image_size=self.settings.size,
+                                      **render_argument(self.settings.render))
             try:
                 for key, states in sorted(result.recordings.items()):
                     index = keys.index(key)

@@ -621,6 +621,9 @@ def _envs_args(argv: list[str]):
     parser.add_argument("--camera-steps", type=int, default=20, help="the same, with cameras")
     parser.add_argument("--resets", type=int, default=10,
                         help="fresh-scene resets timed per way, reload and in place (0: skip)")
+    parser.add_argument("--view-frames", type=int, default=100,
+                        help="frames per suite drawn both ways, render=faithful and render=fast, "
+                             "for LIBERO, Meta-World and bimanual (0: skip)")
     return parser.parse_args(argv)
 
 
@@ -653,6 +656,10 @@ def main(argv: list[str]) -> int:
         try:
             bench_envs(args.bench, args.tasks, args.cameras, args.image_size, args.steps,
                        args.camera_steps, args.resets)
+            if args.view_frames > 0:
+                from harness.perf.views import bench_views
+
+                bench_views(args.view_frames, args.image_size)
         except RetainError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -50,10 +50,11 @@ class LiberoSuite(Suite):
     def instruction(self, task: str) -> str:
         return self.task(task).instruction
 
-    def make_env(self, task: str, cameras: bool = False, image_size: int = 128) -> TaskEnv:
+    def make_env(self, task: str, cameras: bool = False, image_size: int = 128,
+                 render: str = "faithful") -> TaskEnv:
         from suites.libero.env import LiberoTaskEnv
 
-        return LiberoTaskEnv(self.task(task), cameras, image_size)
+        return LiberoTaskEnv(self.task(task), cameras, image_size, render=render)
 
     def episode_keys(self, task: str, split: str, n: int) -> list[int]:
         """Evaluation episode i: LIBERO's init state i mod 50. Spatial episode i: init state

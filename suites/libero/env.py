@@ -30,6 +30,7 @@ dataset files store them: robosuite's renders unflipped (OpenGL convention, bott
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from xml.etree import ElementTree
@@ -50,6 +51,7 @@ from suites.libero.tasks import (
     LiberoTask,
     init_states,
 )
+from suites.render import FAST, RenderSettings, apply_to_robosuite, check_render
 from suites.views import robosuite_draw, robosuite_state
 
 FRESH_PLACEMENT = 1 << 30
@@ -70,6 +72,15 @@ CAMERAS = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "robot0_eye_in_hand"
 ROBOT_INIT_NOISE = "default"
 # Set to 0 (or false/no/off) to step every LIBERO env through robosuite's own `env.step`.
 FAST_STEP_ENV = "RETAIN_LIBERO_FAST_STEP"
+# LIBERO's render modes (suites/render.py). Faithful draws as robosuite does: its reflection pass
+# is not free of pixels (libero_spatial's first task: 227 of agentview's 16384 pixels, mean
+# 1.1/255, up to 134; tests/test_render.py), and its lights cast no shadows. Fast keeps the
+# reflections too (over simplified meshes they cost little: 10.4 ms a view without, 13.9 with,
+# and 2.99/255 from faithful against 2.69), turns multisampling off and simplifies every visual
+# mesh above MESH_FACES faces (suites/libero/simplify.py).
+MESH_FACES = 2000
+RENDER = {"faithful": RenderSettings(),
+          "fast": dataclasses.replace(FAST, reflections=True, mesh_faces=MESH_FACES)}
 RAW_KEYS = ("robot0_joint_pos", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
 log = logging.getLogger(__name__)
@@ -92,9 +103,11 @@ def patch_floor_mount() -> None:
         OnTheGroundPanda.default_base = property(lambda self: "NullMount")
 
 
-def make_raw_env(task: LiberoTask, cameras: bool, image_size: int):
+def make_raw_env(task: LiberoTask, cameras: bool, image_size: int,
+                 render: RenderSettings = RENDER["faithful"]):
     """LIBERO's own env class (`ControlEnv`, the base of `OffScreenRenderEnv`, which only forces
-    rendering on): OSC_POSE at 20 Hz as LIBERO sets it, rendering only when cameras are on."""
+    rendering on): OSC_POSE at 20 Hz as LIBERO sets it, rendering only when cameras are on, as
+    `render` says (its simplified meshes swapped in by an XML processor, kept at reloads)."""
     ensure_installed()
     patch_floor_mount()
     from libero.libero.envs.env_wrapper import ControlEnv
@@ -107,6 +120,12 @@ def make_raw_env(task: LiberoTask, cameras: bool, image_size: int):
                      hard_reset=False)  # start() reloads the model for a fresh scene only
     if not cameras:
         drop_textures(env.env)
+    elif render.mesh_faces:
+        from suites.libero.simplify import simplified_meshes
+
+        reload_with(env.env, simplified_meshes(render.mesh_faces))
+    if cameras:
+        apply_to_robosuite(env.env.sim, render)
     return env
 
 
@@ -117,7 +136,13 @@ def drop_textures(env) -> None:
     the 220 MB of a kitchen scene's compiled model): an evaluation holds one scene per task at
     once, 42 of them in libero-paper. Physics reads no texture, so episodes are unchanged
     (tests/test_suite_libero.py steps both and compares the states bit for bit)."""
-    env.set_xml_processor(_without_textures)  # robosuite applies it at every reload
+    reload_with(env, _without_textures)
+
+
+def reload_with(env, processor) -> None:
+    """Reload a robosuite env's sim through an XML processor, which it applies at every reload
+    after; numpy's global RNG is left as it was."""
+    env.set_xml_processor(processor)
     saved = np.random.get_state()  # LIBERO's reset may draw placements from numpy's global RNG
     try:
         env.reset_from_xml_string(env.model.get_xml())
@@ -147,15 +172,17 @@ class NoExpert(SuiteError):
 
 class LiberoTaskEnv(TaskEnv):
     def __init__(self, task: LiberoTask, cameras: bool = False, image_size: int = 128,
-                 fast_step: bool | None = None, reload_fresh_scenes: bool = False):
+                 fast_step: bool | None = None, reload_fresh_scenes: bool = False,
+                 render: str = "faithful"):
         self.task, self.cameras = task, cameras
+        self.render = RENDER[check_render(render)]
         self.fast_step = fast_step_default() if fast_step is None else fast_step
         # a fresh scene by robosuite's reload (1.5-3 s) instead of a reset in place (10-30
         # ms): the reference tests/test_suite_libero.py holds the reset in place to
         self.reload_fresh_scenes = reload_fresh_scenes
         self._loaded_poses: tuple[np.ndarray, np.ndarray] | None = None
         self._stepper: FastStepper | None = None
-        self.env = make_raw_env(task, cameras, image_size)  # the raw LIBERO env experts get
+        self.env = make_raw_env(task, cameras, image_size, self.render)  # the raw env experts get
         self.objects = [obj.name for obj in self.env.env.objects]  # BDDL order: fixed per task
         self.fresh_noise = dict(self.env.env.robots[0].initialization_noise)  # robosuite's default
         if len(self.objects) > MAX_OBJECTS:
@@ -193,6 +220,8 @@ class LiberoTaskEnv(TaskEnv):
         finally:
             np.random.set_state(saved)
             self.env.env.hard_reset = False
+        if self.cameras:  # a reload made a new renderer
+            apply_to_robosuite(self.env.sim, self.render)
         if is_spatial(key):
             state = self.spatial_state(key)
         elif key < FRESH_PLACEMENT:

@@ -39,6 +39,7 @@ from suites.base import (
     is_spatial,
 )
 from suites.metaworld.instructions import INSTRUCTIONS
+from suites.render import FAST, RenderSettings, apply_to_model, apply_to_scene, check_render
 
 _STATE_DIM = 39
 _ACTION_DIM = 4
@@ -46,6 +47,8 @@ _ACTION_DIM = 4
 _CAMERAS = {AGENTVIEW: ("corner", True), EYE_IN_HAND: ("gripperPOV", False)}
 _SHADOW_MAP_SIZE = 1024
 _TURNED = {"corner", "corner2", "corner3"}  # cameras Meta-World mounts upside down
+# render modes (suites/render.py): faithful draws everything (reflections off moved 0.03/255)
+RENDER = {"faithful": RenderSettings(), "fast": FAST}
 WIDEN = 2.0  # the spatial probe's x and y ranges: this many times the task's own, same centre
 MIN_WIDENED = 0.01  # m; narrower ranges (Meta-World's +-1 mm jitter) are not widened
 PENETRATION = 0.005  # m: how much deeper than in the task's own states a probe state may press
@@ -65,7 +68,7 @@ def _expert_classes():
 
 
 class MetaWorldEnv(TaskEnv):
-    def __init__(self, task: str, cameras: bool, image_size: int):
+    def __init__(self, task: str, cameras: bool, image_size: int, render: str = "faithful"):
         import warnings
 
         warnings.filterwarnings("ignore", message="Constant\\(s\\) may be too high")
@@ -76,6 +79,7 @@ class MetaWorldEnv(TaskEnv):
         self._allowance: dict | None = None  # the spatial probe's, made at its first reset
         self._renderer = None
         self._view = None  # draws recorded states for videos (render_state)
+        self.render = RENDER[check_render(render)]
         if cameras:
             import mujoco
 
@@ -83,7 +87,9 @@ class MetaWorldEnv(TaskEnv):
             # Meta-World's 4096^2 shadow map costs more than the image itself at these sizes
             # (twice the render time on a CPU); 1024^2 gives the same shadows at a few hundred pixels
             model.vis.quality.shadowsize = min(model.vis.quality.shadowsize, _SHADOW_MAP_SIZE)
+            apply_to_model(model, self.render)
             self._renderer = mujoco.Renderer(model, image_size, image_size)
+            apply_to_scene(self._renderer.scene, self.render)
 
     def _observation(self, raw: np.ndarray) -> Observation:
         self._obs = raw
@@ -179,7 +185,8 @@ class MetaWorldEnv(TaskEnv):
         if self._view is None:
             model = self._env.model
             model.vis.quality.shadowsize = min(model.vis.quality.shadowsize, _SHADOW_MAP_SIZE)
-            self._view = MujocoView(model, self._env.data)
+            apply_to_model(model, self.render)
+            self._view = MujocoView(model, self._env.data, self.render)
         image = self._view.draw(state, camera, size)
         return np.ascontiguousarray(image[::-1, ::-1]) if camera in _TURNED else image
 
@@ -225,5 +232,6 @@ class MetaWorldSuite(Suite):
     def instruction(self, task: str) -> str:
         return INSTRUCTIONS[self.check_task(task)]
 
-    def make_env(self, task: str, cameras: bool = False, image_size: int = 84) -> TaskEnv:
-        return MetaWorldEnv(self.check_task(task), cameras, image_size)
+    def make_env(self, task: str, cameras: bool = False, image_size: int = 84,
+                 render: str = "faithful") -> TaskEnv:
+        return MetaWorldEnv(self.check_task(task), cameras, image_size, render)
