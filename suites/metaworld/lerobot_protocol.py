@@ -33,7 +33,7 @@ import numpy as np
 from suites import register_suite
 from suites.base import AGENTVIEW, EYE_IN_HAND, Observation, StepResult, TaskEnv, is_spatial
 from suites.lerobot_protocol import LeRobotProtocol, LeRobotProtocolSuite
-from suites.metaworld import MetaWorldEnv, MetaWorldSuite, _expert_classes
+from suites.metaworld import RENDER, MetaWorldEnv, MetaWorldSuite, _expert_classes
 
 LEROBOT_MT1_SEED = 42  # LeRobot's metaworld.MT1(task, seed=42)
 LEROBOT_EVAL_SEED = 1000  # lerobot-eval's --seed default: episode i resets with seed 1000 + i
@@ -77,7 +77,8 @@ class MetaWorldLeRobotEnv(MetaWorldEnv):
         env._partially_observable = False  # the experts read the goal (module docstring)
         self._env = env
         self._expert = _expert_classes()[task]()
-        self._obs, self._allowance, self._renderer = None, None, None
+        self._obs, self._allowance, self._renderer, self._view = None, None, None, None
+        self.render = RENDER["faithful"]  # lerobot-eval's images: Meta-World's own drawing
         self.cameras = cameras
         if cameras:
             import mujoco

@@ -55,15 +55,15 @@ def checkpoint_features(cfg: BenchConfig, suite: Suite) -> dict[str, str]:
     if "state" in overrides and overrides["state"] != state:
         raise RetainError(f"{where} has no state feature {overrides['state']!r} (lerobot_keys); "
                           f"its state is {state!r}")
+    if width != suite.state_dim:
+        raise RetainError(f"{where}'s {state!r} is {width}-D; suite {suite.name!r} gives "
+                          f"{suite.state_dim}-D{PROPRIO_HINT.get((suite.name, width), '')}")
     for kind, wide, pad in (("state", suite.state_dim, s.max_state_dim),
                             ("action", suite.action_dim, s.max_action_dim)):
         if pad is not None and wide > pad:
             raise RetainError(f"{where} pads its {kind} to max_{kind}_dim={pad}, and suite "
                               f"{suite.name!r}'s {kind} is {wide}-D: LeRobot pads up, never "
                               f"down (train it with max_{kind}_dim >= {wide})")
-    if width != suite.state_dim:
-        raise RetainError(f"{where}'s {state!r} is {width}-D; suite {suite.name!r} gives "
-                          f"{suite.state_dim}-D{PROPRIO_HINT.get((suite.name, width), '')}")
     features = {"state": state}
     for name, shape in s.images.items():
         key = next((k for k in CAMERA_KEYS if overrides.get(k) == name), None) or next(
