@@ -1,4 +1,6 @@
-"""Tiny LeRobot checkpoints written by LeRobot's own API, in lerobot-train's layout.
+"""Tiny LeRobot checkpoints written by LeRobot's own API, in lerobot-train's layout, and a
+small LeRobot dataset for a suite's tasks (`demos_dir=`: a run with cameras without the minutes
+of rendering the experts' demos).
 
 lerobot-train saves `<output>/checkpoints/<step>/pretrained_model/` (the policy's
 `save_pretrained`, then its pre- and post-processor's) and points `checkpoints/last` at the newest
@@ -90,6 +92,30 @@ def write_lerobot_checkpoint(kind: str, output: Path, state_dim: int, action_dim
     last = output / "checkpoints" / "last"
     last.unlink(missing_ok=True)
     last.symlink_to(f"{step:06d}")  # lerobot-train's own link: a relative one
+    return folder
+
+
+def write_synthetic_dataset(folder: Path, suite_name: str, tasks: list[str], image_size: int,
+                            episodes_per_task: int = 2, length: int = 8, seed: int = 0) -> Path:
+    """Short random episodes of each task (state and actions of the suite's widths, both cameras)
+    as a LeRobot v3.0 dataset with PNG images, matched to the tasks by their instructions."""
+    import numpy as np
+
+    from harness.data.demos import Episode
+    from harness.data.lerobot.writer import write_dataset
+    from suites import get_suite
+
+    suite = get_suite(suite_name)
+    rng = np.random.default_rng(seed)
+
+    def episode() -> Episode:
+        images = rng.integers(0, 256, (length, image_size, image_size, 3), dtype=np.uint8)
+        return Episode(rng.uniform(-1, 1, (length, suite.action_dim)).astype(np.float32),
+                       {"state": rng.normal(size=(length, suite.state_dim)).astype(np.float32),
+                        "agentview_rgb": images, "eye_in_hand_rgb": images[:, ::-1]}, seed=-1)
+
+    write_dataset(folder, [(suite.instruction(t), [episode() for _ in range(episodes_per_task)])
+                           for t in tasks], fps=20, images="png")
     return folder
 
 

@@ -44,6 +44,31 @@ def test_libero_paper_tiny_with_lerobots_pi0_on_both_cameras(tmp_path):
     assert episodes[0].obs[CAMERA_KEYS[0]].shape[1:] == (32, 32, 3)
 
 
+def test_libero_paper_tiny_with_lerobots_pi0_on_both_cameras_at_fast_render(tmp_path):
+    """The same run in make test: LIBERO's views at render=fast (about 15 ms a view against
+    85-150), and the demos from a small LeRobot dataset of the tiny benchmark's tasks rather
+    than the experts' rendered ones, so that what remains is LeRobot's PI0 pre-trained, fine-tuned
+    and rolled out in LIBERO on both cameras."""
+    from harness.config.benchmark import resolve
+    from tests.lerobot_checkpoints import write_synthetic_dataset
+
+    tasks = resolve(["BENCH=libero-paper", "PROFILE=tiny"]).all_tasks()
+    demos = write_synthetic_dataset(tmp_path / "dataset", "libero", tasks, 32)
+    args = ["bench", "BENCH=libero-paper", "PROFILE=tiny", "METHOD=consft",
+            "policy=lerobot_pi0", "image_size=32", "render=fast", f"demos_dir={demos}",
+            f"results_dir={tmp_path}/results", f"cache_dir={tmp_path}/cache", "progress=false",
+            "executor=serial", "eval_workers=1", "demos_per_task=1", "eval_episodes=1",
+            "check_episodes=1", "eval_step_cap=10"]
+    assert main(args) == 0
+    run = next((tmp_path / "results" / "libero-paper-tiny").glob("consft*/seed0"))
+    config = (run / "config.yaml").read_text()
+    assert "policy: lerobot_pi0" in config and "render: fast" in config
+    stages = json.loads((run / "metrics.json").read_text())["stages"]
+    assert len(stages) == 2 and all(np.isfinite(s["train_loss"]) for s in stages)
+    rows = [line.split(",")[2:] for line in (run / "success_matrix.csv").read_text().splitlines()[1:]]
+    assert len(rows) == 2 and all(0 <= float(v) <= 1 for row in rows for v in row)  # rolled out
+
+
 @pytest.fixture
 def checkpoint(tmp_path):
     """A tiny PI0 for Meta-World (39-D state, 4-D actions) saved as a LeRobot folder."""

@@ -20,10 +20,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from harness.data.demos import Episode
-from harness.data.lerobot.writer import write_dataset
-from suites import get_suite
-from tests.lerobot_checkpoints import write_lerobot_checkpoint
+from tests.lerobot_checkpoints import write_lerobot_checkpoint, write_synthetic_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 PX, STATE, ACTION = 32, 39, 4  # Meta-World's state and actions, small camera images
@@ -70,23 +67,6 @@ def shift_action_mean(folder: Path, shift: float) -> None:
         save_file(stats, folder / name)
 
 
-def synthetic_dataset(folder: Path) -> Path:
-    """Two short episodes of each tiny mw-quick task (one trains, one is held out) as a LeRobot
-    v3.0 dataset with both cameras as PNG: what `demos_dir=` reads instead of the experts."""
-    suite = get_suite("metaworld")
-    rng = np.random.default_rng(0)
-
-    def episode(n=8):
-        images = rng.integers(0, 256, (n, PX, PX, 3), dtype=np.uint8)
-        return Episode(rng.uniform(-1, 1, (n, ACTION)).astype(np.float32),
-                       {"state": rng.normal(size=(n, STATE)).astype(np.float32),
-                        "agentview_rgb": images, "eye_in_hand_rgb": images[:, ::-1]}, seed=-1)
-
-    write_dataset(folder, [(suite.instruction(t), [episode(), episode()]) for t in TASKS],
-                  fps=80, images="png")
-    return folder
-
-
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("lerobot_cli")
@@ -95,7 +75,7 @@ def setup(tmp_path_factory):
     stages = [fine_tune(base, root / f"ft{i}" / "pretrained_model", seed=i, scale=0.05 * i,
                         shift=0.5 * i) for i in (1, 2)]
     return {"root": root, "base": root / "base" / "checkpoints" / "last", "stages": stages,
-            "demos": synthetic_dataset(root / "dataset")}
+            "demos": write_synthetic_dataset(root / "dataset", "metaworld", list(TASKS), PX)}
 
 
 def tiny_run(setup, results: Path, *args) -> list[str]:
