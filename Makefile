@@ -119,10 +119,10 @@ lerobot-export: $(STAMP)
 libero-check: $(STAMP)
 	$(PY) -m suites.libero.build_all $(LIBERO_SUITES)
 
-# the suite without its slow checks (pytest -m slow: reruns, kills and resumes of whole runs,
-# statistics over many scenes, and the report page's videos played in headless Chromium, which
-# its test installs with apt-get where it is missing; about 5 minutes more), which test-slow
-# runs; CI runs both
+# the suite without its slow checks (about 8 minutes on two cores), which test-slow runs
+# (pytest -m slow: reruns, kills and resumes of whole runs, statistics over many scenes, every
+# LIBERO task, lerobot-eval's oracle, the report page's videos played in headless Chromium, which
+# its test installs with apt-get where it is missing; most of an hour on two cores); CI runs both
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -p no:warnings -m "not slow" tests
 
