@@ -141,6 +141,8 @@ def test_which_episodes_each_stage_records():
     assert chosen.episodes_at(2) == {("push-v3", 0), ("push-v3", 1)}
     assert chosen.episodes_at(1) == set()
     assert chosen.key() != settings.key()
+    fast = VideoSettings.of(resolve(["PROFILE=tiny", "videos=true", "render=fast"]))
+    assert fast.key() != settings.key()  # frames drawn fast are never taken for faithful ones
 
 
 @functools.cache

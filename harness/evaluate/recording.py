@@ -53,8 +53,11 @@ class VideoSettings:
 
     def key(self) -> str:
         """What a stage-0 video depends on besides the foundation and its evaluation."""
-        blob = json.dumps([VIDEO_VERSION, sorted(self.tasks), self.episodes, self.size,
-                           self.camera, self.fps])
+        parts = [VIDEO_VERSION, sorted(self.tasks), self.episodes, self.size, self.camera,
+                 self.fps]
+        if self.render != "faithful":  # frames drawn fast (with cameras off, not in the
+            parts.append(self.render)  # foundation's key) are never a faithful video's
+        blob = json.dumps(parts)
         return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
