@@ -27,6 +27,7 @@ class RenderSettings:
 
 
 FAST = RenderSettings(reflections=False, shadows=False, samples=0)
+MODES = {"faithful": RenderSettings(), "fast": FAST}  # a suite with no mode of its own (LIBERO's)
 
 
 def check_render(mode: str) -> str:

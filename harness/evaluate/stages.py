@@ -61,6 +61,11 @@ def eval_settings(cfg: BenchConfig) -> EvalSettings:
                         step_cap=cfg.eval_step_cap)
 
 
+def make_evaluator(cfg: BenchConfig, suite, workers: int) -> Evaluator:
+    """The run's evaluator: its settings, `workers` processes, its threads and progress."""
+    return Evaluator(suite, eval_settings(cfg), workers, cfg.torch_threads, progress=cfg.progress)
+
+
 def evaluate_stage(policy, evaluator: Evaluator, cfg: BenchConfig, data: BenchmarkData, seed: int,
                    stage: int, task: str, method: Method | None = None,
                    videos: VideoWriter | None = None) -> StageRecord:

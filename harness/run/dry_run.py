@@ -12,7 +12,6 @@ import torch
 
 from harness.common.errors import RetainError
 from harness.config.benchmark import BenchConfig
-from harness.protocol.foundation import policy_config
 from policies import policy_for_config
 from policies.lerobot.checkpoint import CheckpointError, first_line
 from suites import Suite
@@ -46,10 +45,10 @@ def shapes_text(config) -> str:
     return text + ", an instruction"
 
 
-def dry_run_policy(cfg: BenchConfig, suite: Suite) -> None:
-    """Build the run's policy on the CPU and run its loss and sampling once; RetainError (one
-    line naming the policy and the shapes) on any failure."""
-    config = policy_config(cfg, suite)
+def dry_run_policy(config, cfg: BenchConfig, suite: Suite) -> None:
+    """Build the run's policy from its `config` (`policy_config`'s, as the plan resolved it) on
+    the CPU and run its loss and sampling once; RetainError (one line naming the policy and the
+    shapes) on any failure."""
     what = f"policy_path {cfg.policy_path!r}" if cfg.policy_path else f"policy {cfg.policy!r}"
     try:
         policy = policy_for_config(config)

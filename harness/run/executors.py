@@ -147,12 +147,10 @@ class SerialExecutor:
     """One job after another in this process, sharing one evaluator and the loaded data."""
 
     def __init__(self, cfg: BenchConfig, suite, data, workers: int):
-        from harness.evaluate.rollouts import Evaluator
-        from harness.evaluate.stages import eval_settings
+        from harness.evaluate.stages import make_evaluator
 
         self.data = data
-        self.evaluator = Evaluator(suite, eval_settings(cfg), workers, cfg.torch_threads,
-                                   progress=cfg.progress)
+        self.evaluator = make_evaluator(cfg, suite, workers)
 
     def run(self, fn: Callable, jobs: list) -> Iterator[tuple[int, object]]:
         for i, job in enumerate(jobs):

@@ -98,8 +98,7 @@ def build_foundation(job: FoundationJob, evaluator=None, data=None) -> float:
     """The seed's foundation, trained into the cache or found there; its stage-0 foundation
     success. Its training curve goes to the parent run."""
     from harness.data.prepare import prepare_data
-    from harness.evaluate.rollouts import Evaluator
-    from harness.evaluate.stages import eval_settings
+    from harness.evaluate.stages import make_evaluator
     from harness.protocol.foundation import load_or_train_foundation
     from harness.track.tracking import BatchedMetrics, Tracker
     from suites import get_suite
@@ -111,8 +110,7 @@ def build_foundation(job: FoundationJob, evaluator=None, data=None) -> float:
     tracker = Tracker(cfg.results_dir, cfg.name, job.tracking.uri)
     curve = BatchedMetrics(tracker, job.tracking.parent_id, prefix=f"foundation_seed{job.seed}/")
     own = evaluator is None
-    with Evaluator(suite, eval_settings(cfg), job.eval_workers, cfg.torch_threads,
-                   progress=cfg.progress) if own else nullcontext(evaluator) as ev:
+    with make_evaluator(cfg, suite, job.eval_workers) if own else nullcontext(evaluator) as ev:
         foundation = load_or_train_foundation(cfg, suite, data, job.seed, ev, log=curve)
     curve.flush()
     return foundation_success(cfg, foundation.stage0)
@@ -124,8 +122,7 @@ def run_job(job: Job, evaluator=None, data=None):
     `evaluator` and `data` are the serial executor's, shared by its jobs; elsewhere the job
     makes its own from the config and the cache."""
     from harness.data.prepare import prepare_data
-    from harness.evaluate.rollouts import Evaluator
-    from harness.evaluate.stages import eval_settings
+    from harness.evaluate.stages import make_evaluator
     from harness.protocol.foundation import load_or_train_foundation
     from harness.protocol.stream import make_method, run_stream
     from harness.track.run_outputs import write_run_outputs
@@ -168,9 +165,7 @@ def run_job(job: Job, evaluator=None, data=None):
             log_stage(record)
 
         own = evaluator is None
-        with Evaluator(suite, eval_settings(cfg), job.eval_workers, cfg.torch_threads,
-                       progress=cfg.progress) if own \
-                else nullcontext(evaluator) as ev:
+        with make_evaluator(cfg, suite, job.eval_workers) if own else nullcontext(evaluator) as ev:
             foundation = load_or_train_foundation(cfg, suite, data, seed, ev)
             log_stage(foundation.stage0)
             result = run_stream(cfg, suite, data, foundation, method, seed, ev, job.label,

@@ -93,10 +93,9 @@ def plan(args: list[str]) -> Plan:
     except ValueError as exc:
         raise RetainError(str(exc)) from None
     if cfg.policy_path:  # the checkpoint fixes its chunk and cameras, for the labels' base too
-        from harness.data.lerobot.checkpoint import adopt_checkpoint, checkpoint_settings
+        from harness.data.lerobot.checkpoint import adopt_checkpoint
 
-        adopt_checkpoint(cfg, suite, given)
-        for key, value in checkpoint_settings(cfg, suite).items():
+        for key, value in adopt_checkpoint(cfg, suite, given).items():
             setattr(base, key, value)
     from harness.common.device import resolve_device
     from harness.protocol.foundation import policy_config
@@ -109,7 +108,7 @@ def plan(args: list[str]) -> Plan:
     if cfg.dry_run:
         from harness.run.dry_run import dry_run_policy
 
-        dry_run_policy(cfg, suite)
+        dry_run_policy(policy_settings, cfg, suite)
     if cfg.method == "all":
         names = ["sft"] + [n for n in method_names() if n != "sft"]
     else:

@@ -23,12 +23,11 @@ from suites.bimanual.scene import AGENTVIEW_CAMERA, WRIST_CAMERAS, env_kwargs, t
 from suites.bimanual.script import Script, target_orientation
 from suites.bimanual.tasks import TASKS
 from suites.bimanual.world import read_world
-from suites.render import FAST, RenderSettings, apply_to_robosuite, check_render
+from suites.render import MODES, apply_to_robosuite, check_render
 from suites.robosuite_common import seed_env, upright
 from suites.views import robosuite_draw, robosuite_state
 
 MAX_OBJECTS = 3
-RENDER = {"faithful": RenderSettings(), "fast": FAST}  # render modes (suites/render.py)
 MAX_POINTS = 2
 ARM_STATE = ("eef_pos", 3), ("eef_quat", 4), ("gripper_qpos", 2)
 STATE_LAYOUT: list[tuple[str, int]] = (
@@ -65,7 +64,7 @@ class BimanualEnv(TaskEnv):
     def __init__(self, task: str, cameras: bool, image_size: int, render: str = "faithful"):
         self.spec = TASKS[task]
         self._env = self.spec.build(env_kwargs(cameras, image_size))
-        self.render = RENDER[check_render(render)]
+        self.render = MODES[check_render(render)]
         if cameras:  # robosuite made the renderer when it built the env (reset in place keeps it)
             apply_to_robosuite(self._env.sim, self.render)
         self._bodies, self._sites = self.spec.names(self._env)

@@ -39,7 +39,7 @@ from suites.base import (
     is_spatial,
 )
 from suites.metaworld.instructions import INSTRUCTIONS
-from suites.render import FAST, RenderSettings, apply_to_model, apply_to_scene, check_render
+from suites.render import MODES, apply_to_model, apply_to_scene, check_render
 
 _STATE_DIM = 39
 _ACTION_DIM = 4
@@ -48,7 +48,6 @@ _CAMERAS = {AGENTVIEW: ("corner", True), EYE_IN_HAND: ("gripperPOV", False)}
 _SHADOW_MAP_SIZE = 1024
 _TURNED = {"corner", "corner2", "corner3"}  # cameras Meta-World mounts upside down
 # render modes (suites/render.py): faithful draws everything (reflections off moved 0.03/255)
-RENDER = {"faithful": RenderSettings(), "fast": FAST}
 WIDEN = 2.0  # the spatial probe's x and y ranges: this many times the task's own, same centre
 MIN_WIDENED = 0.01  # m; narrower ranges (Meta-World's +-1 mm jitter) are not widened
 PENETRATION = 0.005  # m: how much deeper than in the task's own states a probe state may press
@@ -79,7 +78,7 @@ class MetaWorldEnv(TaskEnv):
         self._allowance: dict | None = None  # the spatial probe's, made at its first reset
         self._renderer = None
         self._view = None  # draws recorded states for videos (render_state)
-        self.render = RENDER[check_render(render)]
+        self.render = MODES[check_render(render)]
         if cameras:
             import mujoco
 

@@ -33,7 +33,8 @@ import numpy as np
 from suites import register_suite
 from suites.base import AGENTVIEW, EYE_IN_HAND, Observation, StepResult, TaskEnv, is_spatial
 from suites.lerobot_protocol import LeRobotProtocol, LeRobotProtocolSuite
-from suites.metaworld import RENDER, MetaWorldEnv, MetaWorldSuite, _expert_classes
+from suites.metaworld import MetaWorldEnv, MetaWorldSuite, _expert_classes
+from suites.render import MODES
 
 LEROBOT_MT1_SEED = 42  # LeRobot's metaworld.MT1(task, seed=42)
 LEROBOT_EVAL_SEED = 1000  # lerobot-eval's --seed default: episode i resets with seed 1000 + i
@@ -78,7 +79,7 @@ class MetaWorldLeRobotEnv(MetaWorldEnv):
         self._env = env
         self._expert = _expert_classes()[task]()
         self._obs, self._allowance, self._renderer, self._view = None, None, None, None
-        self.render = RENDER["faithful"]  # lerobot-eval's images: Meta-World's own drawing
+        self.render = MODES["faithful"]  # lerobot-eval's images: Meta-World's own drawing
         self.cameras = cameras
         if cameras:
             import mujoco

@@ -134,12 +134,14 @@ def checkpoint_settings(cfg: BenchConfig, suite: Suite) -> dict:
     return settings
 
 
-def adopt_checkpoint(cfg: BenchConfig, suite: Suite, given: dict[str, str]) -> None:
-    """Set what the checkpoint fixes on `cfg`; a command-line value (`given`) that differs is
-    refused in one line."""
-    for key, value in checkpoint_settings(cfg, suite).items():
+def adopt_checkpoint(cfg: BenchConfig, suite: Suite, given: dict[str, str]) -> dict:
+    """Set what the checkpoint fixes on `cfg` and return it; a command-line value (`given`)
+    that differs is refused in one line."""
+    settings = checkpoint_settings(cfg, suite)
+    for key, value in settings.items():
         if key in given and getattr(cfg, key) != value:
             raise RetainError(f"{key}={given[key]} conflicts with policy_path "
                               f"{cfg.policy_path!r}, whose {key} is {value}: a checkpoint sets "
                               f"its own")
         setattr(cfg, key, value)
+    return settings
